@@ -1,0 +1,143 @@
+"""`FlowEstimator`: the public entry point of the engine."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .field import FlowField
+from .params import EngineParams
+from .reference import ReferenceEngine
+
+__all__ = ["FlowEstimator", "BACKENDS"]
+
+BACKENDS = ("opencl", "numpy")
+
+
+class FlowEstimator:
+    """Insect-vision optical flow (Elementary Velocity Detector) over a stream of frames.
+
+    Parameters
+    ----------
+    width, height : int
+        Frame size in pixels. Every frame given to :meth:`update` must have this size.
+    backend : {'opencl', 'numpy'}
+        ``'opencl'`` (default) runs the kernels in ``kernels/`` through pyopencl;
+        ``'numpy'`` runs the reference implementation (exactly the same results, far
+        slower).
+    scales : tuple of int, optional
+        Odd receptor sizes in pixels, paper default ``(1, 3, 5, 7, 9, 11, 13)`` (§3.2).
+    threshold : float, optional
+        Ternary threshold in gray levels of 8-bit input, paper default 5 (§4).
+    prefilter_size : int, optional
+        Gaussian prefilter width, ``sigma = size / 6``; paper default 11, 0 = off (§4).
+    sharp_templates : bool, optional
+        Accept the sharp template ``[p 0 / 0 p]`` too (default False, spec §2).
+    delays : tuple of int, optional
+        Temporal delays in frames; ``(1,)`` (default) is the paper's model, ``(1, 2, 4)``
+        adds slow channels (1/2 and 1/4 px/frame at scale 1).
+    delay_scales : tuple of int, optional
+        Scales at which delays > 1 apply (default ``(1,)``).
+    device : str or int, optional
+        OpenCL device: an index into :func:`emdflow.opencl_devices` or a substring of the
+        platform/device name. Default: the ``EMDFLOW_OPENCL_DEVICE`` environment variable,
+        else the first device found.
+
+    Raises
+    ------
+    ValueError
+        On a bad size or parameter, naming it.
+    RuntimeError
+        When ``backend='opencl'`` and no OpenCL platform is usable; the message says how
+        to install one.
+
+    Examples
+    --------
+    >>> est = FlowEstimator(320, 240, backend="numpy")
+    >>> field = est.update(frame)          # doctest: +SKIP
+    >>> s = summarize(field)               # doctest: +SKIP
+    """
+
+    def __init__(
+        self,
+        width: int,
+        height: int,
+        backend: str = "opencl",
+        *,
+        scales=(1, 3, 5, 7, 9, 11, 13),
+        threshold: float = 5.0,
+        prefilter_size: int = 11,
+        sharp_templates: bool = False,
+        delays=(1,),
+        delay_scales=(1,),
+        device=None,
+    ):
+        for name, value in (("width", width), ("height", height)):
+            if not isinstance(value, (int, np.integer)) or isinstance(value, bool):
+                raise ValueError(f"{name} must be an integer number of pixels, got {value!r}")
+        if width < 3 or height < 3:
+            raise ValueError(f"frame size {width}x{height}: both sides must be at least 3 px")
+        if backend not in BACKENDS:
+            raise ValueError(f"backend={backend!r}: expected one of {', '.join(BACKENDS)}")
+        self.width, self.height, self.backend = int(width), int(height), backend
+        self.params = EngineParams(
+            scales=tuple(scales),
+            threshold=float(threshold),
+            prefilter_size=int(prefilter_size),
+            sharp_templates=bool(sharp_templates),
+            delays=tuple(delays),
+            delay_scales=tuple(delay_scales),
+        )
+        if backend == "numpy":
+            self._engine = ReferenceEngine(self.width, self.height, self.params)
+        else:
+            from .opencl_backend import OpenCLEngine
+
+            self._engine = OpenCLEngine(self.width, self.height, self.params, device=device)
+        self._frames = 0
+
+    def _check(self, frame) -> np.ndarray:
+        expected = f"a 2-D uint8 array of shape ({self.height}, {self.width})"
+        if not isinstance(frame, np.ndarray):
+            raise ValueError(f"frame: expected {expected}, got {type(frame).__name__}")
+        if frame.ndim != 2:
+            raise ValueError(f"frame: expected {expected}, got {frame.ndim}-D shape {frame.shape}")
+        if frame.dtype != np.uint8:
+            raise ValueError(f"frame: expected {expected}, got dtype {frame.dtype}")
+        if frame.shape != (self.height, self.width):
+            raise ValueError(
+                f"frame: expected {expected}, got shape {frame.shape} "
+                f"({frame.shape[1]}x{frame.shape[0]} instead of {self.width}x{self.height})"
+            )
+        return frame
+
+    def update(self, frame: np.ndarray) -> FlowField:
+        """Feed one frame; returns the flow field for it (all NaN until history is full).
+
+        Parameters
+        ----------
+        frame : ndarray of uint8, shape (height, width)
+            Gray image; frames are assumed evenly spaced in time.
+
+        Returns
+        -------
+        FlowField
+            ``u``, ``v`` in px/frame (NaN = undetected) plus the summary's evidence. The
+            arrays belong to the caller.
+        """
+        frame = self._check(frame)
+        u_code, v_code, stats, hist = self._engine.step(frame)
+        self._frames += 1
+        return FlowField(u_code, v_code, stats, hist, self.params, self._frames)
+
+    def reset(self) -> None:
+        """Forget the frame history (the next 3·max(delays) frames give no flow)."""
+        self._engine.reset()
+        self._frames = 0
+
+    @property
+    def frames_seen(self) -> int:
+        """Frames processed since construction or the last reset."""
+        return self._frames
+
+    def __repr__(self) -> str:
+        return f"FlowEstimator({self.width}, {self.height}, backend={self.backend!r}, {self.params})"

@@ -1,0 +1,120 @@
+"""The per-frame result of the detector: a sparse flow field plus the summary's evidence."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .params import EngineParams
+from .reference import (
+    STAT_FIRST_CHANGED,
+    STAT_SATURATED,
+    STAT_TEXTURED,
+    STAT_U_DETECTIONS,
+    STAT_V_DETECTIONS,
+)
+
+__all__ = ["FlowField"]
+
+
+class FlowField:
+    """Sparse optical flow of one frame, as the Elementary Velocity Detector sees it.
+
+    The detector outputs a flow *code* per pixel and axis (int8: ``±(c+1)`` for channel
+    ``c`` in the positive/negative direction, 0 for nothing). ``u`` and ``v`` are
+    materialised from the codes on first access (float32, px/frame, NaN where undetected)
+    and cached, so a caller that only needs :func:`emdflow.summarize` never pays for them.
+
+    Attributes
+    ----------
+    u_code, v_code : ndarray of int8, shape (H, W)
+        Raw flow codes (owned by this field; they stay valid after the next update).
+    speeds : tuple of float
+        Speed of each channel, px/frame (``u = sign(code) · speeds[|code| − 1]``).
+    stats : ndarray of int64
+        Per-frame counters (detections, textured and saturated pixels, changed states).
+    histogram : ndarray of int64, shape (2, 2·channels, orientation bins)
+        Detections binned by axis, signed channel and gradient orientation (the summary's
+        input; see :func:`emdflow.reference.summary_statistics`).
+    frame_index : int
+        Frames seen since the last reset, counting this one (1 for the first frame).
+    ready : bool
+        True once the detector's history is full (before that, everything is NaN).
+    """
+
+    __slots__ = (
+        "u_code", "v_code", "speeds", "stats", "histogram", "frame_index", "ready",
+        "params", "_u", "_v",
+    )
+
+    def __init__(self, u_code, v_code, stats, histogram, params: EngineParams, frame_index: int):
+        self.u_code = u_code
+        self.v_code = v_code
+        self.stats = stats
+        self.histogram = histogram
+        self.params = params
+        self.speeds = params.speeds
+        self.frame_index = int(frame_index)
+        self.ready = self.frame_index > params.history_frames
+        self._u = None
+        self._v = None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.u_code.shape
+
+    def _lookup(self) -> np.ndarray:
+        n = len(self.speeds)
+        lut = np.full(256, np.nan, np.float32)  # indexed by the code as uint8
+        for c, s in enumerate(self.speeds):
+            lut[c + 1] = s
+            lut[(-(c + 1)) & 0xFF] = -s
+        assert n < 128
+        return lut
+
+    @property
+    def u(self) -> np.ndarray:
+        """Horizontal flow, float32 px/frame (right positive), NaN where undetected."""
+        if self._u is None:
+            self._u = self._lookup()[self.u_code.view(np.uint8)]
+        return self._u
+
+    @property
+    def v(self) -> np.ndarray:
+        """Vertical flow, float32 px/frame (down positive), NaN where undetected."""
+        if self._v is None:
+            self._v = self._lookup()[self.v_code.view(np.uint8)]
+        return self._v
+
+    @property
+    def u_detections(self) -> int:
+        return int(self.stats[STAT_U_DETECTIONS])
+
+    @property
+    def v_detections(self) -> int:
+        return int(self.stats[STAT_V_DETECTIONS])
+
+    @property
+    def textured_fraction(self) -> float:
+        """Share of sampled pixels with enough contrast for the detector (0..1)."""
+        h, w = self.shape
+        sampled = max(1, ((h - 2) // 2) * max(0, w - 2))  # even interior rows
+        return float(self.stats[STAT_TEXTURED]) / sampled
+
+    @property
+    def saturated_fraction(self) -> float:
+        """Share of sampled pixels at the ends of the 8-bit range (0..1)."""
+        h, w = self.shape
+        return float(self.stats[STAT_SATURATED]) / max(1, ((h + 1) // 2) * w)
+
+    @property
+    def changed_fraction(self) -> np.ndarray:
+        """Per channel, share of pixels whose ternary state is nonzero."""
+        h, w = self.shape
+        return self.stats[STAT_FIRST_CHANGED:].astype(np.float64) / (h * w)
+
+    def __repr__(self) -> str:
+        h, w = self.shape
+        return (
+            f"FlowField({w}x{h}, frame {self.frame_index}, "
+            f"{self.u_detections} u / {self.v_detections} v detections)"
+        )

@@ -1,0 +1,173 @@
+"""Model parameters and the integer tables that both backends share.
+
+Everything the detector compares is an exact integer, so the numpy reference and the
+OpenCL kernels agree bit for bit:
+
+* the prefilter is a separable Gaussian with integer weights summing to 256 per axis; the
+  prefiltered image ``P`` is rounded once to units of 1/256 gray level (0..65280);
+* receptor values are *box sums* of ``P`` over ``k × k`` blocks (never divided);
+* the ternary threshold on a box-sum difference is ``floor(θ · k² · 256)``, compared with
+  ``>``, which is exactly "mean change > θ gray levels";
+* the gradient orientation used by the summary is binned with integer cross products
+  against a table of boundary directions.
+
+Channels
+--------
+A *channel* is one (scale ``k``, delay ``D``) pair. Its detector compares receptor values
+``D`` frames apart and matches at speed ``k / D`` px/frame. The paper's model is the seven
+channels ``(k, 1)`` for ``k = 1, 3, …, 13``; temporal delays (``delays``) add slow channels
+at the scales in ``delay_scales``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+__all__ = ["EngineParams", "gaussian_weights", "ORIENTATION_BINS"]
+
+#: Orientation bins over 180° used to summarise the gradient direction of detections.
+ORIENTATION_BINS = 64
+#: Fixed-point scale of the orientation boundary table (cos/sin × 2**14).
+_ORIENT_ONE = 1 << 14
+#: The paper's 11-tap Gaussian (sigma = 11/6) with integer weights summing to 256.
+_GAUSS11 = (1, 5, 15, 31, 48, 56, 48, 31, 15, 5, 1)
+
+
+def gaussian_weights(size: int, total: int = 256) -> tuple[int, ...]:
+    """Integer 1-D Gaussian weights of ``size`` taps (sigma = size / 6) summing to ``total``.
+
+    The sampled Gaussian is rounded with the largest-remainder method, once, on the host;
+    both backends use the same table. ``size`` 0 or 1 means no prefilter: ``(total,)``.
+    For ``size == 11`` this is the table ``[1 5 15 31 48 56 48 31 15 5 1]``.
+    """
+    if size in (0, 1):
+        return (total,)
+    if size < 0 or size % 2 == 0:
+        raise ValueError(f"prefilter_size={size}: must be 0 (off) or an odd number >= 3")
+    if size == 11 and total == 256:
+        return _GAUSS11
+    sigma = size / 6.0
+    half = size // 2
+    x = np.arange(size) - half
+    g = np.exp(-0.5 * (x / sigma) ** 2)
+    exact = g / g.sum() * total
+    w = np.floor(exact).astype(np.int64)
+    # Largest remainders take the missing units, in mirror pairs so the table stays
+    # symmetric; an odd unit left over goes to the centre tap.
+    rest = int(total - w.sum())
+    for i in sorted(range(half), key=lambda i: -(exact[i] - w[i])):
+        if rest < 2:
+            break
+        w[i] += 1
+        w[size - 1 - i] += 1
+        rest -= 2
+    w[half] += rest
+    return tuple(int(v) for v in w)
+
+
+@dataclasses.dataclass(frozen=True)
+class EngineParams:
+    """Parameters of the Elementary Velocity Detector (see ``spec/template-model.md``).
+
+    Parameters
+    ----------
+    scales : tuple of int
+        Odd receptor sizes ``k`` in pixels (paper §3.2: 1, 3, …, 13). A match at scale
+        ``k`` with delay 1 means ``k`` px/frame.
+    threshold : float
+        Ternary threshold ``θ`` on the mean receptor change, in gray levels of the 8-bit
+        input (paper §4: 5).
+    prefilter_size : int
+        Width ``w`` of the Gaussian prefilter window (``sigma = w / 6``; paper §4: 11);
+        0 disables it.
+    sharp_templates : bool
+        Also accept the "sharp" template ``[p 0 / 0 p]`` (spec §2); off in the paper's model.
+    delays : tuple of int
+        Temporal delays ``D`` (frames). ``(1,)`` is the paper's model; e.g. ``(1, 2, 4)``
+        adds channels comparing receptors 2 and 4 frames apart, which see 1/2 and 1/4
+        px/frame at scale 1.
+    delay_scales : tuple of int
+        Scales at which the delays > 1 are applied.
+    """
+
+    scales: tuple[int, ...] = (1, 3, 5, 7, 9, 11, 13)
+    threshold: float = 5.0
+    prefilter_size: int = 11
+    sharp_templates: bool = False
+    delays: tuple[int, ...] = (1,)
+    delay_scales: tuple[int, ...] = (1,)
+
+    def __post_init__(self):
+        scales = tuple(int(k) for k in self.scales)
+        if not scales:
+            raise ValueError("scales: at least one scale is needed")
+        for k in scales:
+            if k < 1 or k % 2 == 0 or k > 31:
+                raise ValueError(f"scales: {k} is not an odd receptor size between 1 and 31 px")
+        if len(set(scales)) != len(scales):
+            raise ValueError(f"scales: {scales} has duplicates")
+        object.__setattr__(self, "scales", tuple(sorted(scales)))
+        if not (self.threshold >= 0 and math.isfinite(self.threshold)):
+            raise ValueError(f"threshold={self.threshold}: must be a finite number >= 0")
+        gaussian_weights(int(self.prefilter_size))  # validates
+        delays = tuple(sorted({int(d) for d in self.delays}))
+        if not delays or delays[0] != 1 or delays[-1] > 16:
+            raise ValueError(f"delays={self.delays}: must include 1, each between 1 and 16 frames")
+        object.__setattr__(self, "delays", delays)
+        dscales = tuple(sorted({int(k) for k in self.delay_scales}))
+        for k in dscales:
+            if k not in scales:
+                raise ValueError(f"delay_scales: {k} is not one of the scales {scales}")
+        object.__setattr__(self, "delay_scales", dscales)
+
+    # ---- derived tables (computed once, on the host, shared by both backends) ----
+    @property
+    def weights(self) -> tuple[int, ...]:
+        """Integer prefilter weights (sum 256)."""
+        return gaussian_weights(int(self.prefilter_size))
+
+    @property
+    def channels(self) -> tuple[tuple[int, int], ...]:
+        """(scale, delay) pairs, sorted by increasing speed ``k / D``."""
+        chans = [(k, 1) for k in self.scales]
+        chans += [(k, d) for d in self.delays if d > 1 for k in self.delay_scales]
+        return tuple(sorted(chans, key=lambda c: (c[0] / c[1], c[0])))
+
+    @property
+    def speeds(self) -> tuple[float, ...]:
+        """Speed of each channel in px/frame, in channel order."""
+        return tuple(k / d for k, d in self.channels)
+
+    @property
+    def max_delay(self) -> int:
+        return max(self.delays)
+
+    def box_threshold(self, k: int) -> int:
+        """Integer threshold on a k×k box-sum difference: ``floor(θ · k² · 256)``."""
+        return int(math.floor(self.threshold * k * k * 256))
+
+    @property
+    def history_frames(self) -> int:
+        """Frames needed before the slowest channel can fire (3 for the paper's model)."""
+        return 3 * self.max_delay
+
+    @staticmethod
+    def orientation_table() -> np.ndarray:
+        """Boundary directions of the orientation bins as int64 ``(cos, sin)`` × 2**14.
+
+        Row ``b`` is the direction ``(b + 1) · 180° / ORIENTATION_BINS``; a gradient folded
+        into the upper half-plane lies in bin ``#{b : cos_b·gy − sin_b·gx >= 0}``.
+        """
+        b = np.arange(1, ORIENTATION_BINS)
+        ang = b * math.pi / ORIENTATION_BINS
+        return np.stack(
+            [np.rint(np.cos(ang) * _ORIENT_ONE), np.rint(np.sin(ang) * _ORIENT_ONE)], axis=1
+        ).astype(np.int64)
+
+    @staticmethod
+    def orientation_centres() -> np.ndarray:
+        """Centre angle of each orientation bin, radians in [0, π)."""
+        return (np.arange(ORIENTATION_BINS) + 0.5) * math.pi / ORIENTATION_BINS

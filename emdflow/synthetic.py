@@ -1,0 +1,210 @@
+"""Synthetic camera flights over real photographs, with exact ground truth.
+
+A downward-looking camera flies over a flat textured ground (one of the photographs that
+scikit-image bundles, or any image file). Each frame is rendered at ``supersample`` times
+the output resolution with bilinear interpolation and then area-averaged down, so sub-pixel
+motion is rendered the way a real sensor integrates light over its pixel area. Sensor noise,
+contrast reduction and exposure drift are optional.
+
+The ground is tiled by reflection, so flights can be arbitrarily long.
+
+Everything here is pure computation on arrays: the same renderer feeds the tests, the
+evaluation tool, the benchmark and the daemon's ``synthetic:`` source.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from functools import lru_cache
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+__all__ = ["TEXTURES", "load_texture", "CameraFlight", "FlightTruth"]
+
+#: Names of bundled photographs usable as ground textures (scikit-image's ``data`` module).
+TEXTURES = ("gravel", "grass", "brick", "camera", "moon", "coffee", "astronaut", "rocket")
+
+
+@lru_cache(maxsize=16)
+def _load_texture_cached(name: str) -> np.ndarray:
+    if name in TEXTURES:
+        import skimage.data
+
+        image = getattr(skimage.data, name)()
+    else:
+        path = Path(name)
+        if not path.is_file():
+            raise ValueError(
+                f"texture {name!r}: not a bundled texture ({', '.join(TEXTURES)}) "
+                "and not an image file"
+            )
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if image is None:
+            raise ValueError(f"texture {name!r}: OpenCV cannot read this image file")
+    if image.ndim == 3:
+        code = cv2.COLOR_RGBA2GRAY if image.shape[2] == 4 else cv2.COLOR_RGB2GRAY
+        image = cv2.cvtColor(np.ascontiguousarray(image), code)
+    if image.dtype != np.uint8:
+        image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    texture = image.astype(np.float32)
+    texture.setflags(write=False)
+    return texture
+
+
+def load_texture(name: str) -> np.ndarray:
+    """Return a ground texture as a read-only float32 gray image (0..255).
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`TEXTURES`, or the path of any image file OpenCV reads.
+    """
+    return _load_texture_cached(str(name))
+
+
+@dataclasses.dataclass(frozen=True)
+class FlightTruth:
+    """Ground truth of one rendered frame.
+
+    Attributes
+    ----------
+    flow_x, flow_y : float
+        Image motion of the ground between the previous frame and this one at the image
+        centre, px/frame (x right, y down).
+    expansion_rate : float
+        Divergence of the flow field, 1/frame (``u = flow_x + e/2·(x−cx)``,
+        ``v = flow_y + e/2·(y−cy)`` with ``e`` this value); 0 for a translation.
+    """
+
+    flow_x: float
+    flow_y: float
+    expansion_rate: float = 0.0
+
+
+class CameraFlight:
+    """A camera flight over a textured ground plane with known image motion.
+
+    Parameters
+    ----------
+    texture : str
+        Ground texture: a name from :data:`TEXTURES` or an image file path.
+    width, height : int
+        Output frame size in pixels.
+    flow : (float, float)
+        Image flow of the ground, px/frame (x right, y down). The camera moves the
+        opposite way.
+    noise_sigma : float
+        Standard deviation of additive Gaussian sensor noise, gray levels (8-bit).
+    contrast : float
+        Scene contrast factor around mid-gray (1 = the photograph's own contrast).
+    exposure_drift : float
+        Relative exposure change across ``drift_frames`` frames (e.g. 0.2 for +20 %),
+        applied as a linear gain ramp; negative values darken.
+    drift_frames : int
+        Length of the exposure ramp in frames.
+    expansion_rate : float
+        Zoom flight: relative growth of image scale per frame (1/frame), as when the
+        camera approaches the ground; the flow field is then radial about the centre.
+    ground_scale : float
+        Ground texture pixels per output pixel at frame 0 (values < 1 magnify the
+        photograph, > 1 shrink it).
+    supersample : int
+        Rendering oversampling factor per axis before area averaging.
+    seed : int
+        Seed of the noise generator; frame ``t`` uses ``seed + t`` so any frame can be
+        rendered again on its own.
+    """
+
+    def __init__(
+        self,
+        texture: str = "gravel",
+        *,
+        width: int = 320,
+        height: int = 240,
+        flow: tuple[float, float] = (1.0, 0.0),
+        noise_sigma: float = 2.0,
+        contrast: float = 1.0,
+        exposure_drift: float = 0.0,
+        drift_frames: int = 100,
+        expansion_rate: float = 0.0,
+        ground_scale: float = 1.0,
+        supersample: int = 4,
+        seed: int = 0,
+        start: tuple[float, float] | None = None,
+    ):
+        if width < 8 or height < 8:
+            raise ValueError(f"frame size {width}x{height}: both sides must be at least 8 px")
+        if supersample < 1:
+            raise ValueError(f"supersample={supersample}: must be >= 1")
+        self.texture_name = str(texture)
+        self.texture = load_texture(texture)
+        self.width = int(width)
+        self.height = int(height)
+        self.flow = (float(flow[0]), float(flow[1]))
+        self.noise_sigma = float(noise_sigma)
+        self.contrast = float(contrast)
+        self.exposure_drift = float(exposure_drift)
+        self.drift_frames = max(1, int(drift_frames))
+        self.expansion_rate = float(expansion_rate)
+        self.ground_scale = float(ground_scale)
+        self.supersample = int(supersample)
+        self.seed = int(seed)
+        th, tw = self.texture.shape
+        self.start = start if start is not None else (tw / 2.0, th / 2.0)
+
+    def truth(self, t: int) -> FlightTruth:
+        """Ground truth of frame ``t`` (motion from frame ``t−1`` to ``t``)."""
+        return FlightTruth(self.flow[0], self.flow[1], self.expansion_rate)
+
+    def _camera(self, t: int) -> tuple[float, float, float]:
+        """Ground position of the image centre and ground px per image px at frame t."""
+        m = self.ground_scale * (1.0 + self.expansion_rate) ** (-t)
+        # Image flow +u means the ground moves right in the image: the camera moves left
+        # over the ground. For a zoom flight the ground pixel under the centre stays put.
+        if self.expansion_rate == 0.0:
+            cx = self.start[0] - self.flow[0] * m * t
+            cy = self.start[1] - self.flow[1] * m * t
+        else:
+            # integrate the centre's ground motion with the changing scale
+            ks = np.arange(1, t + 1)
+            ms = self.ground_scale * (1.0 + self.expansion_rate) ** (-ks.astype(np.float64))
+            cx = self.start[0] - self.flow[0] * float(ms.sum())
+            cy = self.start[1] - self.flow[1] * float(ms.sum())
+        return cx, cy, m
+
+    def render(self, t: int) -> np.ndarray:
+        """Render frame ``t`` as a 2-D uint8 array of shape (height, width)."""
+        cx, cy, m = self._camera(int(t))
+        s = self.supersample
+        W, H = self.width * s, self.height * s
+        # Affine map from supersampled output pixel centres to ground coordinates.
+        step = m / s
+        x0 = cx - (self.width / 2.0) * m + step / 2.0 - 0.5
+        y0 = cy - (self.height / 2.0) * m + step / 2.0 - 0.5
+        M = np.array([[step, 0.0, x0], [0.0, step, y0]], dtype=np.float64)
+        fine = cv2.warpAffine(
+            self.texture,
+            M,
+            (W, H),
+            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+            borderMode=cv2.BORDER_REFLECT_101,
+        )
+        image = cv2.resize(fine, (self.width, self.height), interpolation=cv2.INTER_AREA)
+        gain = 1.0 + self.exposure_drift * min(1.0, t / self.drift_frames)
+        image = (image - 128.0) * self.contrast + 128.0
+        image = image * gain
+        if self.noise_sigma > 0:
+            rng = np.random.default_rng(self.seed + int(t))
+            image = image + rng.normal(0.0, self.noise_sigma, image.shape).astype(np.float32)
+        return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+    def frames(self, count: int, start: int = 0):
+        """Yield ``count`` consecutive frames starting at index ``start``."""
+        for t in range(start, start + count):
+            yield self.render(t)
+
+    def render_many(self, count: int, start: int = 0) -> np.ndarray:
+        """Render ``count`` frames as an array of shape (count, height, width)."""
+        return np.stack(list(self.frames(count, start)))
