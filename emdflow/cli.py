@@ -1,0 +1,233 @@
+"""The ``emdflow`` command (also ``python -m emdflow``).
+
+Subcommands::
+
+    emdflow flow INPUT -o OUTPUT.avi   # flow video: detections in Middlebury colours + summary arrow
+    emdflow frames INPUT               # CSV: frame, t, flow_x, flow_y[, rate_x, rate_y], quality
+    emdflow eval [--quick]             # camera flights with exact truth, engine vs OpenCV DIS
+    emdflow bench ...                  # the benchmark (emdflow.bench)
+
+Errors are one line on stderr naming the offending file; exit code 2 for bad input or
+usage, 1 when the engine cannot start (e.g. no OpenCL platform), 130 on Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+__all__ = ["main", "build_parser", "run_flow"]
+
+
+def _auto_upscale(width: int) -> int:
+    """Integer enlargement that makes a flow video about 480 px wide (1..4)."""
+    return max(1, min(4, int(round(480 / max(1, width)))))
+
+
+def _add_flow_arguments(p: argparse.ArgumentParser) -> None:
+    from emdflow.tools import add_engine_arguments
+
+    p.add_argument("input", metavar="INPUT",
+                   help="video file, folder of images, one image, or synthetic:KEY=VALUE,... "
+                        "(keys texture,u,v,frames,size,noise,contrast,drift,zoom,fps,seed)")
+    p.add_argument("-o", "--output", required=True, metavar="VIDEO",
+                   help=".avi/.mkv (lossless FFV1 by default) or .mp4 (mp4v)")
+    p.add_argument("--codec", choices=("ffv1", "mjpg", "mp4v"),
+                   help="ffv1: lossless, large; mjpg: lossy .avi that plays everywhere; mp4v: .mp4")
+    p.add_argument("--fps", type=float, help="frame rate (overrides the video's; default 30 for folders)")
+    p.add_argument("--size", metavar="WxH", help="resize frames before processing (area interpolation)")
+    p.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
+    p.add_argument("--max-flow", type=float, default=6.0, metavar="PX",
+                   help="flow drawn fully saturated by the colour wheel, px/frame (default %(default)s)")
+    p.add_argument("--upscale", type=int, metavar="N",
+                   help="enlarge the video N times (default: to about 480 px wide, at most 4)")
+    p.add_argument("--npz", metavar="PATH",
+                   help="also save u, v (float16, NaN = undetected), flow_x, flow_y, quality per frame "
+                        "(kept in memory until the end)")
+    p.add_argument("--flo-dir", metavar="DIR", help="also write every frame's field as DIR/frame_NNNNNN.flo")
+    p.add_argument("--snapshot", metavar="PNG", help="also save the last frame of the video as a PNG")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_engine_arguments(p)
+
+
+def run_flow(args) -> int:
+    """``emdflow flow``: engine over a video, written as a flow video (+ optional exports)."""
+    import numpy as np
+
+    from emdflow import summarize
+    from emdflow.tools import ToolError, make_estimator, progress_bar
+    from emdflow.tools.flo import write_flo
+    from emdflow.tools.flowviz import render_flow_frame
+    from emdflow.tools.video_io import VideoWriter, open_frames, parse_size
+
+    if args.fps is not None and args.fps <= 0:
+        raise ToolError(f"--fps {args.fps:g}: must be > 0", 2)
+    if args.max_flow <= 0:
+        raise ToolError(f"--max-flow {args.max_flow:g}: must be > 0", 2)
+    try:
+        size = parse_size(args.size) if args.size else None
+    except ValueError as e:
+        raise ToolError(f"--size: {e}", 2) from None
+    for path in (args.npz, args.snapshot):
+        if path and not Path(path).resolve().parent.is_dir():
+            raise ToolError(f"{path}: folder {Path(path).resolve().parent} does not exist", 2)
+    if args.input and args.output and Path(args.input).resolve() == Path(args.output).resolve():
+        raise ToolError(f"{args.output}: output would overwrite the input", 2)
+    source = open_frames(args.input, size=size, fps=args.fps, max_frames=args.max_frames)
+    fps = source.fps or 30.0
+    writer = VideoWriter(args.output, fps, args.codec)
+    flo_dir = None
+    if args.flo_dir:
+        flo_dir = Path(args.flo_dir)
+        try:
+            flo_dir.mkdir(exist_ok=True)
+        except OSError as e:
+            raise ToolError(f"{args.flo_dir}: cannot create folder ({e.strerror})", 2) from None
+    est = make_estimator(args, source.width, source.height)
+    upscale = args.upscale or _auto_upscale(source.width)
+    store = {"u": [], "v": [], "flow_x": [], "flow_y": [], "quality": []} if args.npz else None
+    n = 0
+    interrupted = False
+    try:
+        with writer, progress_bar(source.frame_count, "flow", disable=args.quiet) as bar:
+            try:
+                for frame in source:
+                    field = est.update(frame)
+                    s = summarize(field)
+                    label = f"{n / fps:6.2f}s" if source.fps else f"#{n}"
+                    picture = render_flow_frame(frame, field.u, field.v, s.flow_x, s.flow_y, s.quality,
+                                                max_flow=args.max_flow, upscale=upscale, label=label)
+                    writer.write(picture)
+                    if store is not None:
+                        store["u"].append(field.u.astype(np.float16))
+                        store["v"].append(field.v.astype(np.float16))
+                        store["flow_x"].append(s.flow_x)
+                        store["flow_y"].append(s.flow_y)
+                        store["quality"].append(s.quality)
+                    if flo_dir is not None:
+                        write_flo(flo_dir / f"frame_{n:06d}.flo", field.u, field.v)
+                    n += 1
+                    bar.update(1)
+            except KeyboardInterrupt:
+                interrupted = True
+    finally:
+        source.close()
+        k = min(len(x) for x in store.values()) if store is not None else 0
+        if k:  # (an interrupt may land between the appends of one frame)
+            np.savez_compressed(
+                args.npz,
+                u=np.stack(store["u"][:k]),
+                v=np.stack(store["v"][:k]),
+                flow_x=np.asarray(store["flow_x"][:k], np.float32),
+                flow_y=np.asarray(store["flow_y"][:k], np.float32),
+                quality=np.asarray(store["quality"][:k], np.uint8),
+                fps=np.float64(fps),
+                speeds=np.asarray(est.params.speeds, np.float32),
+            )
+    if args.snapshot and n:
+        import cv2
+
+        if not cv2.imwrite(args.snapshot, picture, [cv2.IMWRITE_PNG_COMPRESSION, 9]):
+            raise ToolError(f"{args.snapshot}: OpenCV cannot write this image", 2)
+    if interrupted:
+        print(f"emdflow flow: interrupted after {writer.frames_written} frames; {args.output} is playable",
+              file=sys.stderr)
+        return 130
+    if n == 0:
+        raise ToolError(f"{args.input}: no frames", 2)
+    if not args.quiet:
+        print(f"wrote {args.output}: {n} frames {writer.size[0]}x{writer.size[1]} at {fps:g} fps ({writer.codec})",
+              file=sys.stderr)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argparse parser of the ``emdflow`` command."""
+    from emdflow import __version__
+    from emdflow.tools import evaluate, frames
+
+    parser = argparse.ArgumentParser(
+        prog="emdflow",
+        description="Insect-vision optical flow (EMD template model): offline tools.",
+        epilog="Run 'emdflow COMMAND -h' for the options of a command.",
+    )
+    parser.add_argument("--version", action="version", version=f"emdflow {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    p = sub.add_parser("flow", help="write a flow video (detections, summary arrow, quality)",
+                       description="Run the engine over a video or image folder and write a flow video: "
+                                   "the frame, detections coloured by the Middlebury colour wheel, the "
+                                   "summary vector and its quality.")
+    _add_flow_arguments(p)
+    p.set_defaults(run=run_flow)
+    p = sub.add_parser("frames", help="per-frame summary as CSV",
+                       description="Print one CSV line per frame: frame,t,flow_x,flow_y[,rate_x,rate_y],quality "
+                                   "(flow in px/frame, image axes x right / y down; rates in rad/s).")
+    frames.add_arguments(p)
+    p.set_defaults(run=frames.run)
+    p = sub.add_parser("eval", help="accuracy on camera flights with exact truth, vs OpenCV DIS",
+                       description="Fly a camera over photographs with exact ground truth (speeds, "
+                                   "directions, noise, contrast, exposure, zoom); measure the engine and "
+                                   "OpenCV DIS ULTRAFAST on the same frames; print a table, write a CSV "
+                                   "and a PNG plot.")
+    evaluate.add_arguments(p)
+    p.set_defaults(run=evaluate.run)
+    sub.add_parser("bench", help="benchmark (see 'emdflow bench -h')", add_help=False)
+    return parser
+
+
+def _run_bench(argv) -> int:
+    import importlib.util
+
+    if importlib.util.find_spec("emdflow.bench") is None:
+        print("emdflow bench: error: the benchmark module emdflow.bench is not part of this installation",
+              file=sys.stderr)
+        return 2
+    from emdflow import bench
+
+    return bench.main(list(argv))
+
+
+def main(argv=None) -> int:
+    """Entry point of the ``emdflow`` console script; returns the exit code."""
+    from emdflow.tools import ToolError
+    from emdflow.tools.flo import FloError
+    from emdflow.tools.video_io import InputError, OutputError
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "bench":
+        return _run_bench(argv[1:])
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "command", None):
+        parser.print_help(sys.stderr)
+        return 2
+    prog = f"emdflow {args.command}"
+    try:
+        return int(args.run(args) or 0)
+    except ToolError as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return e.code
+    except (InputError, OutputError, FloError) as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:
+        if isinstance(e, BrokenPipeError):
+            # Output piped into e.g. `head`: stop quietly (and keep Python from complaining).
+            try:
+                devnull = os.open(os.devnull, os.O_WRONLY)
+                os.dup2(devnull, sys.stdout.fileno())
+            except (OSError, ValueError):
+                pass
+            return 0
+        name = e.filename if e.filename is not None else ""
+        print(f"{prog}: error: {name}{': ' if name else ''}{e.strerror or e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,247 @@
+"""OpenCL backend: the kernels in ``kernels/`` driven through pyopencl.
+
+Design (see ``kernels/*.cl``): all state lives on the device between frames — the
+summed-area tables of the last ``max(delays) + 1`` prefiltered frames and, per channel, a
+ring of ``2D + 1`` bit-packed ternary state planes. Per frame: one upload of the uint8
+frame, six kernel launches on an in-order queue, one blocking download of one result
+buffer (flow codes + statistics + detection histogram). Sizes and tables are compile-time
+constants; a program is built once per process and shape (PoCL also caches the binary on
+disk, ``POCL_CACHE_DIR``).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from .params import ORIENTATION_BINS, EngineParams
+from .reference import STAT_FIRST_CHANGED
+
+__all__ = ["OpenCLEngine", "list_devices", "kernel_source"]
+
+_INSTALL_HINT = (
+    "install an OpenCL runtime: `pip install \"emdflow[pocl]\"` (pyopencl with the PoCL CPU "
+    "runtime; needs binutils' `ld`, e.g. `apt-get install binutils`), or your board vendor's "
+    "OpenCL ICD (e.g. `apt-get install pocl-opencl-icd`, Mali/Jetson drivers) plus "
+    "`pip install \"emdflow[opencl]\"`; or use backend=\"numpy\" (slow)"
+)
+_STAGES = ("common.cl", "prefilter.cl", "integral.cl", "states.cl", "evd.cl")
+_PROGRAMS: dict = {}
+_LOCK = threading.Lock()
+
+
+def _import_cl():
+    try:
+        import pyopencl as cl
+    except ImportError as exc:  # pragma: no cover - depends on the machine
+        raise RuntimeError(f"the OpenCL backend needs pyopencl, which is not installed: {_INSTALL_HINT}") from exc
+    return cl
+
+
+def kernel_source(name: str) -> str:
+    """Text of one kernel file, from the installed package or the source checkout."""
+    try:
+        return resources.files("emdflow.kernels").joinpath(name).read_text()
+    except (ModuleNotFoundError, FileNotFoundError):
+        path = Path(__file__).resolve().parent.parent / "kernels" / name
+        if not path.is_file():
+            raise RuntimeError(f"OpenCL kernel {name!r} not found (looked in package emdflow.kernels and {path})")
+        return path.read_text()
+
+
+def _all_devices():
+    cl = _import_cl()
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error as exc:
+        raise RuntimeError(f"no OpenCL platform found ({exc}); {_INSTALL_HINT}") from exc
+    devices = []
+    for platform in platforms:
+        try:
+            devices.extend(platform.get_devices())
+        except cl.Error:
+            continue
+    if not devices:
+        raise RuntimeError(f"no OpenCL device found; {_INSTALL_HINT}")
+    return devices
+
+
+def list_devices() -> list[tuple[int, str]]:
+    """Usable OpenCL devices as ``[(index, "platform: device"), ...]``."""
+    return [(i, f"{d.platform.name.strip()}: {d.name.strip()}") for i, d in enumerate(_all_devices())]
+
+
+def _pick_device(device):
+    devices = _all_devices()
+    choice = device if device is not None else os.environ.get("EMDFLOW_OPENCL_DEVICE")
+    if choice is None or choice == "":
+        return devices[0]
+    if isinstance(choice, int) or (isinstance(choice, str) and choice.isdigit()):
+        index = int(choice)
+        if not 0 <= index < len(devices):
+            raise ValueError(f"OpenCL device index {index} out of range: {len(devices)} device(s) found")
+        return devices[index]
+    for d in devices:
+        if str(choice).lower() in f"{d.platform.name} {d.name}".lower():
+            return d
+    names = ", ".join(f"{d.platform.name.strip()}: {d.name.strip()}" for d in devices)
+    raise ValueError(f"OpenCL device {choice!r} not found among: {names}")
+
+
+def _spread(m: int) -> int:
+    """64-bit word whose byte j is bit j of the 8-bit value m."""
+    return sum(((m >> j) & 1) << (8 * j) for j in range(8))
+
+
+def _ceil(a: int, b: int) -> int:
+    return -(-a // b)
+
+
+class _Layout:
+    """Buffer geometry and compile-time constants for one frame size and parameter set."""
+
+    SPAD = 32  # left padding of SAT rows (>= max radius + 1, keeps 16-lane loads in bounds)
+    PPAD = 16  # left padding of P rows
+
+    def __init__(self, width: int, height: int, params: EngineParams):
+        self.W, self.H = width, height
+        self.NW = _ceil(width, 32)
+        self.PSTRIDE = self.PPAD + self.NW * 32 + 32
+        self.SSTRIDE = self.SPAD + self.NW * 32 + 64
+        self.SAT_SLOTS = params.max_delay + 1
+        chans = params.channels
+        if len(chans) > 15:
+            raise ValueError(f"{len(chans)} channels: at most 15 (scales x delays) are supported")
+        self.channels = chans
+        self.rings = [2 * d + 1 for _, d in chans]
+        self.bases = list(np.cumsum([0] + self.rings[:-1]))
+        self.plane_slots = int(sum(self.rings))
+        self.n_stats = STAT_FIRST_CHANGED + len(chans) + 2 * 2 * len(chans) * ORIENTATION_BINS
+        self.stats_offset = _ceil(2 * width * height, 64) * 64
+        self.result_bytes = self.stats_offset + 4 * self.n_stats
+        table = EngineParams.orientation_table()
+        w = params.weights
+        join = lambda v: ", ".join(str(int(x)) for x in v)  # noqa: E731
+        self.defines = {
+            "W": width, "H": height, "NW": self.NW, "FSTRIDE": width,
+            "PSTRIDE": self.PSTRIDE, "PPAD": self.PPAD,
+            "SSTRIDE": self.SSTRIDE, "SPAD": self.SPAD, "SAT_SLOTS": self.SAT_SLOTS,
+            "NCH": len(chans),
+            "CH_K": join(k for k, _ in chans), "CH_D": join(d for _, d in chans),
+            "CH_T": join(params.box_threshold(k) for k, _ in chans),
+            "CH_RING": join(self.rings), "CH_BASE": join(self.bases),
+            "RADIUS": len(w) // 2, "WEIGHTS": join(w),
+            "TEX_T": 2 * params.box_threshold(1),
+            "SHARP": int(params.sharp_templates),
+            "STATS_OFFSET": self.stats_offset,
+            "NBINS": ORIENTATION_BINS,
+            "ORIENT_C": join(table[:, 0]),
+            "ORIENT_S": join(table[:, 1]),
+            "SPREAD_TABLE": ", ".join(f"0x{_spread(m):016x}ul" for m in range(256)),
+        }
+
+    def header(self) -> str:
+        return "".join(f"#define {k} {v}\n" for k, v in self.defines.items())
+
+
+def _program(ctx, device, layout: _Layout, debug: bool):
+    cl = _import_cl()
+    source = layout.header() + ("#define DEBUG_MATCHES 1\n" if debug else "")
+    source += "\n".join(kernel_source(name) for name in _STAGES)
+    key = (device.int_ptr, source)
+    with _LOCK:
+        prog = _PROGRAMS.get(key)
+        if prog is None:
+            try:
+                prog = cl.Program(ctx, source).build(options=["-cl-std=CL1.2"])
+            except cl.Error as exc:
+                raise RuntimeError(f"building the emdflow OpenCL kernels failed on {device.name}: {exc}") from exc
+            _PROGRAMS[key] = prog
+    return prog
+
+
+_CONTEXTS: dict = {}
+
+
+def _context(device):
+    cl = _import_cl()
+    with _LOCK:
+        hit = _CONTEXTS.get(device.int_ptr)
+        if hit is None:
+            ctx = cl.Context([device])
+            hit = (ctx, cl.CommandQueue(ctx))
+            _CONTEXTS[device.int_ptr] = hit
+    return hit
+
+
+class OpenCLEngine:
+    """Device-resident detector; same interface and results as ``ReferenceEngine``."""
+
+    def __init__(self, width: int, height: int, params: EngineParams, *, device=None, debug: bool = False):
+        cl = _import_cl()
+        self._cl = cl
+        self.params = params
+        self.layout = lay = _Layout(width, height, params)
+        self.device = _pick_device(device)
+        self.ctx, self.queue = _context(self.device)
+        self.debug = debug
+        self.program = _program(self.ctx, self.device, lay, debug)
+        mf = cl.mem_flags
+        ctx = self.ctx
+        self.frame_buf = cl.Buffer(ctx, mf.READ_ONLY, width * height + 64)
+        self.h_buf = cl.Buffer(ctx, mf.READ_WRITE, 2 * (width * height + 64))
+        self.p_buf = cl.Buffer(ctx, mf.READ_WRITE, 2 * lay.PSTRIDE * (height + 2))
+        self.sat_buf = cl.Buffer(ctx, mf.READ_WRITE, 4 * lay.SSTRIDE * (height + 1) * lay.SAT_SLOTS)
+        self.planes = cl.Buffer(ctx, mf.READ_WRITE, 4 * 2 * lay.plane_slots * height * lay.NW)
+        self.result = cl.Buffer(ctx, mf.READ_WRITE, lay.result_bytes)
+        debug_words = 4 * len(params.channels) * height * lay.NW if debug else 1
+        self.debug_buf = cl.Buffer(ctx, mf.READ_WRITE, 4 * debug_words)
+        for buf in (self.p_buf, self.sat_buf, self.h_buf, self.frame_buf):
+            cl.enqueue_fill_buffer(self.queue, buf, np.uint8(0), 0, buf.size)
+        prg = self.program
+        self._k_rows = prg.prefilter_rows
+        self._k_cols = prg.prefilter_cols
+        self._k_int_rows = prg.integral_rows
+        self._k_int_cols = prg.integral_cols
+        self._k_states = prg.ternary_states
+        self._k_evd = prg.velocity_detectors
+        n16 = _ceil(width, 16)
+        self._g_rows = (n16, height)
+        self._g_int_cols = (_ceil(width, 8),)
+        self._g_rows_only = (height,)
+        self.reset()
+
+    def reset(self) -> None:
+        cl = self._cl
+        cl.enqueue_fill_buffer(self.queue, self.planes, np.uint8(0), 0, self.planes.size)
+        self.queue.finish()
+        self.t = 0
+
+    def step(self, frame: np.ndarray):
+        cl, q, lay = self._cl, self.queue, self.layout
+        t = np.int32(self.t)
+        frame = np.ascontiguousarray(frame)
+        cl.enqueue_copy(q, self.frame_buf, frame, is_blocking=False)
+        cl.enqueue_fill_buffer(q, self.result, np.uint8(0), lay.stats_offset, 4 * lay.n_stats)
+        self._k_rows(q, self._g_rows, None, self.frame_buf, self.h_buf, self.result)
+        self._k_cols(q, self._g_rows, None, self.h_buf, self.p_buf)
+        slot = np.int32(self.t % lay.SAT_SLOTS)
+        self._k_int_rows(q, self._g_rows_only, None, self.p_buf, self.sat_buf, slot)
+        self._k_int_cols(q, self._g_int_cols, None, self.sat_buf, slot)
+        self._k_states(q, self._g_rows_only, None, self.sat_buf, self.planes, self.p_buf, self.result, t)
+        self._k_evd(q, self._g_rows_only, None, self.planes, self.sat_buf, self.result, self.debug_buf, t)
+        host = np.empty(lay.result_bytes, np.uint8)
+        cl.enqueue_copy(q, host, self.result, is_blocking=True)
+        self.t += 1
+        hw = lay.W * lay.H
+        u_code = host[:hw].view(np.int8).reshape(lay.H, lay.W)
+        v_code = host[hw : 2 * hw].view(np.int8).reshape(lay.H, lay.W)
+        ints = host[lay.stats_offset :].view(np.int32)
+        n_ch = len(lay.channels)
+        stats = ints[: STAT_FIRST_CHANGED + n_ch].astype(np.int64)
+        hist = ints[STAT_FIRST_CHANGED + n_ch :].astype(np.int64).reshape(2, 2 * n_ch, ORIENTATION_BINS)
+        return u_code, v_code, stats, hist

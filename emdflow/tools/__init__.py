@@ -1,0 +1,145 @@
+"""Offline tools of the ``emdflow`` command: flow videos, evaluation, per-frame CSV.
+
+Modules
+-------
+flowviz
+    Middlebury colour wheel and the drawing of one flow-video frame.
+flo
+    Middlebury ``.flo`` files.
+video_io
+    Frames from any video / image folder; FFV1, MJPG or mp4v video out.
+evaluate
+    ``emdflow eval``: camera flights with exact truth, the engine against OpenCV DIS.
+frames
+    ``emdflow frames``: one CSV line of summary per frame.
+
+This package module holds what the subcommands share: :class:`ToolError` (a one-line
+message plus an exit code), the engine options and a progress bar.
+"""
+
+from __future__ import annotations
+
+import ast
+import contextlib
+
+__all__ = ["ToolError", "add_engine_arguments", "engine_kwargs", "make_estimator", "progress_bar"]
+
+
+class ToolError(Exception):
+    """A failure reported as one line on stderr with an exit code (2: bad input/usage)."""
+
+    def __init__(self, message: str, code: int = 2):
+        super().__init__(message)
+        self.code = code
+
+
+def _int_list(text: str) -> tuple[int, ...]:
+    import argparse
+
+    try:
+        values = tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated integers") from None
+    if not values:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected at least one integer")
+    return values
+
+
+def add_engine_arguments(parser) -> None:
+    """Add the engine options (backend, device, detector parameters) to an argparse parser.
+
+    Unset options keep :class:`emdflow.FlowEstimator`'s defaults (the paper's model).
+    """
+    g = parser.add_argument_group("engine")
+    g.add_argument("--backend", choices=("opencl", "numpy"), default="opencl",
+                   help="opencl (default, fast) or numpy (the reference, slow)")
+    g.add_argument("--device", help="OpenCL device index or name substring (default: EMDFLOW_OPENCL_DEVICE or the first)")
+    g.add_argument("--scales", type=_int_list, metavar="LIST", help="odd receptor sizes (default 1,3,5,7,9,11,13)")
+    g.add_argument("--threshold", type=float, help="ternary threshold, gray levels (default 5)")
+    g.add_argument("--prefilter-size", type=int, metavar="N", help="Gaussian prefilter width, 0 = off (default 11)")
+    g.add_argument("--delays", type=_int_list, metavar="LIST", help="temporal delays in frames (default 1)")
+    g.add_argument("--delay-scales", type=_int_list, metavar="LIST", help="scales with delays > 1 (default 1)")
+    g.add_argument("--engine-opt", action="append", default=[], metavar="KEY=VALUE",
+                   help="any other FlowEstimator keyword (VALUE as a Python literal); repeatable")
+
+
+def engine_kwargs(args) -> dict:
+    """FlowEstimator keyword arguments from parsed engine options (only the ones given).
+
+    Raises
+    ------
+    ToolError
+        On a malformed ``--engine-opt``.
+    """
+    kw = {}
+    for key in ("scales", "threshold", "prefilter_size", "delays", "delay_scales"):
+        value = getattr(args, key, None)
+        if value is not None:
+            kw[key] = value
+    device = getattr(args, "device", None)
+    if device is not None:
+        kw["device"] = int(device) if device.isdigit() else device
+    for item in getattr(args, "engine_opt", []) or []:
+        key, sep, text = item.partition("=")
+        key = key.strip().replace("-", "_")
+        if not sep or not key.isidentifier():
+            raise ToolError(f"--engine-opt {item!r}: expected KEY=VALUE", 2)
+        try:
+            kw[key] = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            kw[key] = text
+    return kw
+
+
+def make_estimator(args, width: int, height: int):
+    """A :class:`emdflow.FlowEstimator` for parsed command-line options.
+
+    Raises
+    ------
+    ToolError
+        Code 2 for bad parameters, code 1 when the OpenCL backend cannot start (the
+        message suggests ``--backend numpy``).
+    """
+    from emdflow import FlowEstimator
+
+    kw = engine_kwargs(args)
+    backend = getattr(args, "backend", "opencl")
+    try:
+        return FlowEstimator(int(width), int(height), backend=backend, **kw)
+    except TypeError as e:
+        raise ToolError(f"engine options: {e}", 2) from None
+    except ValueError as e:
+        raise ToolError(f"engine options: {e}", 2) from None
+    except (RuntimeError, ImportError) as e:
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise ToolError(f"backend {backend}: {msg} (try --backend numpy)", 1) from None
+
+
+class _NoBar:
+    def update(self, n=1):
+        pass
+
+    def set_postfix_str(self, s):
+        pass
+
+
+@contextlib.contextmanager
+def progress_bar(total, desc: str, unit: str = "frame", disable: bool = False):
+    """A tqdm progress bar on stderr (rate and ETA), or a silent stand-in.
+
+    ``disable=False`` still hides the bar when stderr is not a terminal; without tqdm
+    installed there is no bar.
+    """
+    if disable:
+        yield _NoBar()
+        return
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        yield _NoBar()
+        return
+    bar = tqdm(total=total, desc=desc, unit=unit, disable=None, dynamic_ncols=True, smoothing=0.1)
+    try:
+        yield bar
+    finally:
+        bar.close()
