@@ -29,7 +29,7 @@ _INSTALL_HINT = (
     "OpenCL ICD (e.g. `apt-get install pocl-opencl-icd`, Mali/Jetson drivers) plus "
     "`pip install \"emdflow[opencl]\"`; or use backend=\"numpy\" (slow)"
 )
-_STAGES = ("common.cl", "prefilter.cl", "integral.cl", "states.cl", "evd.cl")
+_STAGES = ("common.cl", "prefilter.cl", "integral.cl", "states.cl", "evd.cl", "evidence.cl")
 _PROGRAMS: dict = {}
 _LOCK = threading.Lock()
 
@@ -104,40 +104,49 @@ def _ceil(a: int, b: int) -> int:
 class _Layout:
     """Buffer geometry and compile-time constants for one frame size and parameter set."""
 
-    SPAD = 32  # left padding of SAT rows (>= max radius + 1, keeps 16-lane loads in bounds)
+    SPAD = 16  # left padding of SAT rows (>= max radius + 1: 16-lane loads stay in bounds)
     PPAD = 16  # left padding of P rows
+    HIST_COPIES = 8  # histogram copies the evidence kernel spreads its atomics over
 
     def __init__(self, width: int, height: int, params: EngineParams):
         self.W, self.H = width, height
         self.NW = _ceil(width, 32)
+        self.NWP = _ceil(self.NW, 8) * 8 + 2  # 8-word vectors, a zero word each side
+        self.PADR = 2 * max(params.scales)
+        self.HSTRIDE = _ceil(width, 16) * 16
         self.PSTRIDE = self.PPAD + self.NW * 32 + 32
-        self.SSTRIDE = self.SPAD + self.NW * 32 + 64
+        self.SSTRIDE = self.SPAD + self.NW * 32 + 32
         self.SAT_SLOTS = params.max_delay + 1
         chans = params.channels
         if len(chans) > 15:
             raise ValueError(f"{len(chans)} channels: at most 15 (scales x delays) are supported")
         self.channels = chans
         self.rings = [2 * d + 1 for _, d in chans]
-        self.bases = list(np.cumsum([0] + self.rings[:-1]))
+        self.bases = [int(b) for b in np.cumsum([0] + self.rings[:-1])]
         self.plane_slots = int(sum(self.rings))
-        self.n_stats = STAT_FIRST_CHANGED + len(chans) + 2 * 2 * len(chans) * ORIENTATION_BINS
+        self.plane_words = (height + 2 * self.PADR) * self.NWP
+        self.sat_elems = (height + 1) * self.SSTRIDE
+        self.hist_size = 2 * 2 * len(chans) * ORIENTATION_BINS
+        self.n_stats = STAT_FIRST_CHANGED + len(chans) + self.HIST_COPIES * self.hist_size
         self.stats_offset = _ceil(2 * width * height, 64) * 64
         self.result_bytes = self.stats_offset + 4 * self.n_stats
         table = EngineParams.orientation_table()
         w = params.weights
         join = lambda v: ", ".join(str(int(x)) for x in v)  # noqa: E731
         self.defines = {
-            "W": width, "H": height, "NW": self.NW, "FSTRIDE": width,
-            "PSTRIDE": self.PSTRIDE, "PPAD": self.PPAD,
+            "W": width, "H": height, "NW": self.NW, "NWP": self.NWP, "PADR": self.PADR,
+            "HSTRIDE": self.HSTRIDE, "PSTRIDE": self.PSTRIDE, "PPAD": self.PPAD,
             "SSTRIDE": self.SSTRIDE, "SPAD": self.SPAD, "SAT_SLOTS": self.SAT_SLOTS,
             "NCH": len(chans),
             "CH_K": join(k for k, _ in chans), "CH_D": join(d for _, d in chans),
             "CH_T": join(params.box_threshold(k) for k, _ in chans),
             "CH_RING": join(self.rings), "CH_BASE": join(self.bases),
             "RADIUS": len(w) // 2, "WEIGHTS": join(w),
-            "TEX_T": 2 * params.box_threshold(1),
+            "TEX_T": params.texture_threshold,
             "SHARP": int(params.sharp_templates),
             "STATS_OFFSET": self.stats_offset,
+            "EVIDENCE_ROW_STEP": params.evidence_row_step(height),
+            "HIST_COPIES": self.HIST_COPIES,
             "NBINS": ORIENTATION_BINS,
             "ORIENT_C": join(table[:, 0]),
             "ORIENT_S": join(table[:, 1]),
@@ -151,6 +160,8 @@ class _Layout:
 def _program(ctx, device, layout: _Layout, debug: bool):
     cl = _import_cl()
     source = layout.header() + ("#define DEBUG_MATCHES 1\n" if debug else "")
+    if "portable computing language" in device.platform.name.lower():
+        source += "#define EMD_INLINE_ATOMICS 1\n"
     source += "\n".join(kernel_source(name) for name in _STAGES)
     key = (device.int_ptr, source)
     with _LOCK:
@@ -192,48 +203,47 @@ class OpenCLEngine:
         self.program = _program(self.ctx, self.device, lay, debug)
         mf = cl.mem_flags
         ctx = self.ctx
-        self.frame_buf = cl.Buffer(ctx, mf.READ_ONLY, width * height + 64)
-        self.h_buf = cl.Buffer(ctx, mf.READ_WRITE, 2 * (width * height + 64))
-        self.p_buf = cl.Buffer(ctx, mf.READ_WRITE, 2 * lay.PSTRIDE * (height + 2))
-        self.sat_buf = cl.Buffer(ctx, mf.READ_WRITE, 4 * lay.SSTRIDE * (height + 1) * lay.SAT_SLOTS)
-        self.planes = cl.Buffer(ctx, mf.READ_WRITE, 4 * 2 * lay.plane_slots * height * lay.NW)
+        tail = 64  # vector loads of the last row may run past its end
+        self.frame_buf = cl.Buffer(ctx, mf.READ_ONLY, width * height + tail)
+        self.h_buf = cl.Buffer(ctx, mf.READ_WRITE, lay.HSTRIDE * height + tail)
+        self.p_buf = cl.Buffer(ctx, mf.READ_WRITE, lay.PSTRIDE * height + tail)
+        self.sat_buf = cl.Buffer(ctx, mf.READ_WRITE, 2 * lay.sat_elems * lay.SAT_SLOTS + tail)
+        self.planes = cl.Buffer(ctx, mf.READ_WRITE, 4 * 2 * lay.plane_slots * lay.plane_words)
         self.result = cl.Buffer(ctx, mf.READ_WRITE, lay.result_bytes)
-        debug_words = 4 * len(params.channels) * height * lay.NW if debug else 1
+        debug_words = 4 * len(params.channels) * height * lay.NWP if debug else 1
         self.debug_buf = cl.Buffer(ctx, mf.READ_WRITE, 4 * debug_words)
-        for buf in (self.p_buf, self.sat_buf, self.h_buf, self.frame_buf):
+        for buf in (self.frame_buf, self.h_buf, self.p_buf, self.sat_buf):
             cl.enqueue_fill_buffer(self.queue, buf, np.uint8(0), 0, buf.size)
         prg = self.program
-        self._k_rows = prg.prefilter_rows
-        self._k_cols = prg.prefilter_cols
-        self._k_int_rows = prg.integral_rows
-        self._k_int_cols = prg.integral_cols
+        # (kernel, global size) in launch order; arguments are set once where they are fixed
+        self._k_prefilter = prg.prefilter_columns
+        self._k_integral = prg.integral_rows
         self._k_states = prg.ternary_states
         self._k_evd = prg.velocity_detectors
-        n16 = _ceil(width, 16)
-        self._g_rows = (n16, height)
-        self._g_int_cols = (_ceil(width, 8),)
-        self._g_rows_only = (height,)
+        self._k_evidence = prg.summary_evidence
+        self._g_strips = (_ceil(width, 16),)
+        self._g_rows = (height,)
+        self._g_words = (_ceil(lay.NW, 8), height)
         self.reset()
 
     def reset(self) -> None:
-        cl = self._cl
-        cl.enqueue_fill_buffer(self.queue, self.planes, np.uint8(0), 0, self.planes.size)
+        """Forget the history: zero every state plane (and their padding)."""
+        self._cl.enqueue_fill_buffer(self.queue, self.planes, np.uint8(0), 0, self.planes.size)
         self.queue.finish()
         self.t = 0
 
     def step(self, frame: np.ndarray):
+        """Process one frame; returns ``(u_code, v_code, stats, hist)`` like the reference."""
         cl, q, lay = self._cl, self.queue, self.layout
         t = np.int32(self.t)
-        frame = np.ascontiguousarray(frame)
-        cl.enqueue_copy(q, self.frame_buf, frame, is_blocking=False)
-        cl.enqueue_fill_buffer(q, self.result, np.uint8(0), lay.stats_offset, 4 * lay.n_stats)
-        self._k_rows(q, self._g_rows, None, self.frame_buf, self.h_buf, self.result)
-        self._k_cols(q, self._g_rows, None, self.h_buf, self.p_buf)
         slot = np.int32(self.t % lay.SAT_SLOTS)
-        self._k_int_rows(q, self._g_rows_only, None, self.p_buf, self.sat_buf, slot)
-        self._k_int_cols(q, self._g_int_cols, None, self.sat_buf, slot)
-        self._k_states(q, self._g_rows_only, None, self.sat_buf, self.planes, self.p_buf, self.result, t)
-        self._k_evd(q, self._g_rows_only, None, self.planes, self.sat_buf, self.result, self.debug_buf, t)
+        cl.enqueue_copy(q, self.frame_buf, np.ascontiguousarray(frame), is_blocking=False)
+        cl.enqueue_fill_buffer(q, self.result, np.uint8(0), lay.stats_offset, 4 * lay.n_stats)
+        self._k_prefilter(q, self._g_strips, None, self.frame_buf, self.h_buf, self.p_buf, self.sat_buf, slot)
+        self._k_integral(q, self._g_rows, None, self.sat_buf, slot)
+        self._k_states(q, self._g_rows, None, self.sat_buf, self.planes, self.p_buf, self.frame_buf, self.result, t)
+        self._k_evd(q, self._g_words, None, self.planes, self.result, self.debug_buf, t)
+        self._k_evidence(q, self._g_rows, None, self.result, self.sat_buf, t)
         host = np.empty(lay.result_bytes, np.uint8)
         cl.enqueue_copy(q, host, self.result, is_blocking=True)
         self.t += 1
@@ -243,5 +253,44 @@ class OpenCLEngine:
         ints = host[lay.stats_offset :].view(np.int32)
         n_ch = len(lay.channels)
         stats = ints[: STAT_FIRST_CHANGED + n_ch].astype(np.int64)
-        hist = ints[STAT_FIRST_CHANGED + n_ch :].astype(np.int64).reshape(2, 2 * n_ch, ORIENTATION_BINS)
+        copies = ints[STAT_FIRST_CHANGED + n_ch :].reshape(lay.HIST_COPIES, lay.hist_size)
+        hist = copies.sum(axis=0, dtype=np.int64).reshape(2, 2 * n_ch, ORIENTATION_BINS)
         return u_code, v_code, stats, hist
+
+    # ---- inspection (tests): unpack device state into the reference's representation ----
+    def _unpack(self, words: np.ndarray) -> np.ndarray:
+        """(H, NW) uint32 words -> (H, W) bool, bit j of word i = pixel 32 i + j."""
+        bits = np.unpackbits(words.astype("<u4").view(np.uint8), axis=1, bitorder="little")
+        return bits[:, : self.layout.W].astype(bool)
+
+    def debug_states(self) -> list:
+        """Ternary states of the last frame per channel, as int8 arrays (like the reference)."""
+        lay = self.layout
+        planes = np.empty(2 * lay.plane_slots * lay.plane_words, np.uint32)
+        self._cl.enqueue_copy(self.queue, planes, self.planes)
+        planes = planes.reshape(lay.plane_slots, 2, lay.H + 2 * lay.PADR, lay.NWP)
+        out = []
+        for c, _ in enumerate(lay.channels):
+            slot = lay.bases[c] + (self.t - 1) % lay.rings[c]
+            rows = slice(lay.PADR, lay.PADR + lay.H)
+            pos = self._unpack(planes[slot, 0, rows, 1 : 1 + lay.NW])
+            neg = self._unpack(planes[slot, 1, rows, 1 : 1 + lay.NW])
+            out.append(pos.astype(np.int8) - neg.astype(np.int8))
+        return out
+
+    def debug_matches(self) -> dict:
+        """Raw detector outputs of the last frame, ``{(channel, 'E'|'W'|'S'|'N'): bool array}``.
+
+        Needs ``debug=True`` at construction (the kernels then also write the matches).
+        """
+        if not self.debug:
+            raise RuntimeError("debug_matches() needs OpenCLEngine(..., debug=True)")
+        lay = self.layout
+        words = np.empty(4 * len(lay.channels) * lay.H * lay.NWP, np.uint32)
+        self._cl.enqueue_copy(self.queue, words, self.debug_buf)
+        words = words.reshape(len(lay.channels), 4, lay.H, lay.NWP)
+        return {
+            (c, d): self._unpack(words[c, j, :, : lay.NW])
+            for c in range(len(lay.channels))
+            for j, d in enumerate("EWSN")
+        }

@@ -3,10 +3,11 @@
 Everything the detector compares is an exact integer, so the numpy reference and the
 OpenCL kernels agree bit for bit:
 
-* the prefilter is a separable Gaussian with integer weights summing to 256 per axis; the
-  prefiltered image ``P`` is rounded once to units of 1/256 gray level (0..65280);
-* receptor values are *box sums* of ``P`` over ``k × k`` blocks (never divided);
-* the ternary threshold on a box-sum difference is ``floor(θ · k² · 256)``, compared with
+* the prefilter is a separable Gaussian with integer weights summing to 256 per axis,
+  each pass rounded to whole gray levels, so the prefiltered image ``P`` is 8-bit;
+* receptor values are *box sums* of ``P`` over ``k × k`` blocks (never divided; below
+  2**16 for ``k ≤ 15``);
+* the ternary threshold on a box-sum difference is ``floor(θ · k²)``, compared with
   ``>``, which is exactly "mean change > θ gray levels";
 * the gradient orientation used by the summary is binned with integer cross products
   against a table of boundary directions.
@@ -105,13 +106,13 @@ class EngineParams:
         if not scales:
             raise ValueError("scales: at least one scale is needed")
         for k in scales:
-            if k < 1 or k % 2 == 0 or k > 31:
-                raise ValueError(f"scales: {k} is not an odd receptor size between 1 and 31 px")
+            if k < 1 or k % 2 == 0 or k > 15:
+                raise ValueError(f"scales: {k} is not an odd receptor size between 1 and 15 px")
         if len(set(scales)) != len(scales):
             raise ValueError(f"scales: {scales} has duplicates")
         object.__setattr__(self, "scales", tuple(sorted(scales)))
-        if not (self.threshold >= 0 and math.isfinite(self.threshold)):
-            raise ValueError(f"threshold={self.threshold}: must be a finite number >= 0")
+        if not (0 <= self.threshold <= 255 and math.isfinite(self.threshold)):
+            raise ValueError(f"threshold={self.threshold}: must be a number of gray levels in 0..255")
         gaussian_weights(int(self.prefilter_size))  # validates
         delays = tuple(sorted({int(d) for d in self.delays}))
         if not delays or delays[0] != 1 or delays[-1] > 16:
@@ -146,13 +147,29 @@ class EngineParams:
         return max(self.delays)
 
     def box_threshold(self, k: int) -> int:
-        """Integer threshold on a k×k box-sum difference: ``floor(θ · k² · 256)``."""
-        return int(math.floor(self.threshold * k * k * 256))
+        """Integer threshold on a k×k box-sum difference: ``floor(θ · k²)``."""
+        return int(math.floor(self.threshold * k * k))
+
+    @property
+    def texture_threshold(self) -> int:
+        """Threshold on ``|ΔxP| + |ΔyP|`` (central differences) for a textured pixel."""
+        return int(math.floor(2 * self.threshold))
 
     @property
     def history_frames(self) -> int:
         """Frames needed before the slowest channel can fire (3 for the paper's model)."""
         return 3 * self.max_delay
+
+    @staticmethod
+    def evidence_row_step(height: int) -> int:
+        """Rows between the rows whose detections feed the summary histogram.
+
+        About 60 sampled rows whatever the frame height (every 4th row at 240 px, every
+        8th at 480 px, every 2nd below 180 px): thousands of detections per frame are
+        plenty for a global estimate, and the per-detection gradient orientation is the
+        costliest part of the evidence.
+        """
+        return max(2, int(height) // 60)
 
     @staticmethod
     def orientation_table() -> np.ndarray:

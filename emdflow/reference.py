@@ -59,10 +59,12 @@ STAT_FIRST_CHANGED = 4  #: then one count of nonzero states per channel
 
 
 def prefilter(frame: np.ndarray, weights: tuple[int, ...]) -> np.ndarray:
-    """Integer Gaussian prefilter (paper §4), in units of 1/256 gray level.
+    """Integer Gaussian prefilter (paper §4), in gray levels.
 
-    Separable: a horizontal then a vertical pass with integer weights summing to 256,
-    reads clamped to the frame; the result is rounded once, ``(v + 128) >> 8``.
+    Separable: a horizontal then a vertical pass with integer weights summing to 256, reads
+    clamped to the frame, each pass rounded to whole gray levels, ``(s + 128) >> 8``. The
+    result is again an 8-bit image, so a ``k × k`` box sum stays below 2**16 for every
+    scale up to 15 px and the OpenCL kernels can work on 16 pixels per 256-bit vector.
 
     Parameters
     ----------
@@ -73,23 +75,24 @@ def prefilter(frame: np.ndarray, weights: tuple[int, ...]) -> np.ndarray:
     Returns
     -------
     ndarray of int32, shape (H, W)
-        Prefiltered image ``P`` in 1/256 gray levels (0..65280).
+        Prefiltered image ``P`` (0..255).
     """
     w = np.asarray(weights, dtype=np.int32)
     r = len(w) // 2
     img = frame.astype(np.int32)
     if r == 0:
-        return img * int(w[0])
+        return img  # weights (256,): each pass is the identity after rounding
     H, W = img.shape
     xs = np.clip(np.arange(W)[None, :] + np.arange(-r, r + 1)[:, None], 0, W - 1)
     horiz = np.zeros((H, W), np.int32)
     for i in range(len(w)):
         horiz += int(w[i]) * img[:, xs[i]]
+    horiz = (horiz + 128) >> 8
     ys = np.clip(np.arange(H)[None, :] + np.arange(-r, r + 1)[:, None], 0, H - 1)
-    vert = np.zeros((H, W), np.int64)
+    vert = np.zeros((H, W), np.int32)
     for i in range(len(w)):
         vert += int(w[i]) * horiz[ys[i], :]
-    return ((vert + 128) >> 8).astype(np.int32)
+    return (vert + 128) >> 8
 
 
 def box_sums(image: np.ndarray, k: int) -> np.ndarray:
@@ -123,7 +126,7 @@ def receptor_change(p_now: np.ndarray, p_before: np.ndarray, k: int) -> np.ndarr
 def ternary_states(change: np.ndarray, box_threshold: int) -> np.ndarray:
     """Ternary template-model states (paper §2): +1 if ``change > T``, −1 if ``< −T``, else 0.
 
-    ``box_threshold`` is ``floor(θ · k² · 256)`` (see :meth:`EngineParams.box_threshold`),
+    ``box_threshold`` is ``floor(θ · k²)`` (see :meth:`EngineParams.box_threshold`),
     so the test is exactly "mean receptor change > θ gray levels".
     """
     return ((change > box_threshold).astype(np.int8) - (change < -box_threshold).astype(np.int8))
@@ -252,11 +255,12 @@ def summary_statistics(
 
     * counts of horizontal / vertical detections;
     * textured pixels: on even rows, interior pixels where
-      ``|P(x+1)−P(x−1)| + |P(y+1)−P(y−1)| > 2·floor(θ·256)`` — a 1 px/frame motion there
+      ``|P(x+1)−P(x−1)| + |P(y+1)−P(y−1)| > floor(2θ)`` — a 1 px/frame motion there
       would change a scale-1 receptor by more than θ;
     * saturated pixels: on even rows, raw value ≤ 2 or ≥ 253;
     * nonzero states per channel;
-    * the detection histogram ``hist[axis, code, orientation]``: detections on even rows,
+    * the detection histogram ``hist[axis, code, orientation]``: detections on every
+      ``EngineParams.evidence_row_step(H)``-th row,
       ``axis`` 0 = horizontal / 1 = vertical, ``code = 2c + (1 if negative)``,
       ``orientation`` the bin of the gradient of the receptor image ``R_k`` at the middle
       receptor ``B`` at ``t−D`` (spec §6), reads clamped to the valid receptor range.
@@ -275,7 +279,7 @@ def summary_statistics(
         p = p_now.astype(np.int64)
         gx = np.abs(p[1:-1, 2:] - p[1:-1, :-2])
         gy = np.abs(p[2:, 1:-1] - p[:-2, 1:-1])
-        textured = (gx + gy) > 2 * params.box_threshold(1)
+        textured = (gx + gy) > params.texture_threshold
         stats[STAT_TEXTURED] = np.count_nonzero(textured[1::2])  # rows 2, 4, …
     even = frame[0::2]
     stats[STAT_SATURATED] = np.count_nonzero((even <= 2) | (even >= 253))
@@ -284,8 +288,9 @@ def summary_statistics(
 
     hist = np.zeros((2, 2 * len(channels), ORIENTATION_BINS), np.int64)
     for axis, code in enumerate((u_code, v_code)):
-        ys, xs = np.nonzero(code[0::2])
-        ys = ys * 2
+        step = params.evidence_row_step(H)
+        ys, xs = np.nonzero(code[0::step])
+        ys = ys * step
         if ys.size == 0:
             continue
         cval = code[ys, xs].astype(np.int64)

@@ -1,22 +1,30 @@
 /* Shared definitions. The host prepends the compile-time constants:
  *   W, H            frame size (px)
  *   NW              32-pixel words per row of a state plane (ceil(W / 32))
- *   FSTRIDE         row stride of the frame and of the horizontal-pass buffer (= W)
- *   PSTRIDE, PPAD   row stride and left padding (elements) of the prefiltered image P
- *   SSTRIDE, SPAD   row stride and left padding of the summed-area tables (H + 1 rows)
+ *   NWP, PADR       padded plane row length (NW rounded up to 8 words, plus one zero word
+ *                   on each side) and zero rows above and below (2 * max scale), so the
+ *                   detectors never test bounds
+ *   HSTRIDE         row stride of the horizontal-pass buffer (whole 16-px strips)
+ *   PSTRIDE, PPAD   row stride and left padding of the prefiltered image P (uchar)
+ *   SSTRIDE, SPAD   row stride and left padding of the summed-area tables (ushort, H + 1 rows)
  *   SAT_SLOTS       summed-area tables kept (max delay + 1)
  *   NCH             channels (scale, delay), sorted by increasing speed
  *   CH_K, CH_D, CH_T, CH_RING, CH_BASE   per-channel scale, delay, integer threshold,
  *                   state ring length (2D + 1) and first plane slot
  *   RADIUS, WEIGHTS prefilter half-width and integer taps (sum 256)
- *   TEX_T           textured-pixel threshold 2 * floor(theta * 256)
+ *   TEX_T           textured-pixel threshold floor(2 * theta)
  *   SHARP           1 to accept the sharp template
+ *   EVIDENCE_ROW_STEP  rows between the rows whose detections feed the histogram
+ *   HIST_COPIES     copies of the histogram (spread the atomic increments over cache lines)
  *   STATS_OFFSET    byte offset of the int32 statistics in the result buffer
  *   NBINS           orientation bins; ORIENT_C, ORIENT_S boundary table (x 2^14)
- */
-#define PLANE_WORDS (H * NW)
-/* plane index of (channel slot, polarity 0 = positive / 1 = negative) */
-#define PLANE(slot, pol) (((slot) * 2 + (pol)) * PLANE_WORDS)
+ *
+ * Vectors are kept at 256 bits (ushort16, uint8): PoCL 3.0 miscompiles some 512-bit
+ * vector code on machines without AVX-512 (LLVM aborts or broken cached binaries). */
+#define PLANE_WORDS ((H + 2 * PADR) * NWP)
+/* first word of row y of the plane (ring slot, polarity 0 = positive / 1 = negative) */
+#define PLANE_ROW(slot, pol, y) ((((slot) * 2 + (pol)) * PLANE_WORDS) + ((y) + PADR) * NWP + 1)
+#define SAT_SIZE ((H + 1) * SSTRIDE)
 
 #define STAT_U 0
 #define STAT_V 1
@@ -24,16 +32,53 @@
 #define STAT_SATURATED 3
 #define STAT_CHANGED 4
 #define STAT_HIST (STAT_CHANGED + NCH)
+#define HIST_SIZE (2 * 2 * NCH * NBINS)
+
+__constant int CK[NCH] = { CH_K };
+__constant int CD[NCH] = { CH_D };
+__constant int CT[NCH] = { CH_T };
+__constant int CRING[NCH] = { CH_RING };
+__constant int CBASE[NCH] = { CH_BASE };
+
+/* Unaligned vector loads and stores. PoCL 3.0 does not inline vload16/vstore16 (a
+ * library call per vector); a packed struct gives LLVM an align-1 load it turns into
+ * one vmovdqu. */
+typedef struct __attribute__((packed)) { uchar16 v; } uchar16_u;
+typedef struct __attribute__((packed)) { ushort16 v; } ushort16_u;
+typedef struct __attribute__((packed)) { char8 v; } char8_u;
+typedef struct __attribute__((packed)) { uint8 v; } uint8_u;
+typedef struct __attribute__((packed)) { uint v; } uint_u;
+typedef struct __attribute__((packed)) { ulong v; } ulong_u;
+#define LOAD_UC16(p) (((__global const uchar16_u *)(p))->v)
+#define STORE_UC16(p, x) (((__global uchar16_u *)(p))->v = (x))
+#define LOAD_US16(p) (((__global const ushort16_u *)(p))->v)
+#define STORE_US16(p, x) (((__global ushort16_u *)(p))->v = (x))
+#define STORE_C8(p, x) (((__global char8_u *)(p))->v = (x))
+#define LOAD_W8(p) (((__global const uint8_u *)(p))->v)
+#define STORE_W8(p, x) (((__global uint8_u *)(p))->v = (x))
+#define STORE_U32(p, x) (((__global uint_u *)(p))->v = (x))
+#define POPCOUNT(x) __builtin_popcount(x)
+/* PoCL 3.0 calls out of line for atomic_inc (a library call per increment); on PoCL the
+ * host defines EMD_INLINE_ATOMICS and the compiler builtin becomes one `lock add`. */
+#ifdef EMD_INLINE_ATOMICS
+#define ATOMIC_INC(p) __sync_fetch_and_add((p), 1)
+#define ATOMIC_ADD(p, v) __sync_fetch_and_add((p), (v))
+#else
+#define ATOMIC_INC(p) atomic_inc(p)
+#define ATOMIC_ADD(p, v) atomic_add((p), (v))
+#endif
+#define CLAMPI(v, lo, hi) ((v) < (lo) ? (lo) : ((v) > (hi) ? (hi) : (v)))
 
 inline int pos_mod(int a, int m) { int r = a % m; return r < 0 ? r + m : r; }
 
-/* Pack 8 lane masks (all-ones = true) into the low 8 bits of a word. Vectors stay at
- * 8 x 32 bits (one AVX2 register): PoCL 3.0 miscompiles some 16 x 32-bit code on
- * machines without AVX-512. */
-inline uint pack8(int8 mask) {
-    const uint8 bit = (uint8)(1u, 2u, 4u, 8u, 16u, 32u, 64u, 128u);
-    uint8 b = as_uint8(mask) & bit;
-    uint4 a4 = b.lo | b.hi;
-    uint2 a2 = a4.lo | a4.hi;
-    return a2.x | a2.y;
+/* Pack 16 lane masks (all-ones = true) into the low 16 bits of a word. */
+inline uint pack16(short16 mask)
+{
+    const ushort16 bit = (ushort16)(1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 2048,
+                                    4096, 8192, 16384, 32768);
+    ushort16 b = as_ushort16(mask) & bit;
+    ushort8 a8 = b.lo | b.hi;
+    ushort4 a4 = a8.lo | a8.hi;
+    ushort2 a2 = a4.lo | a4.hi;
+    return (uint)(a2.x | a2.y);
 }

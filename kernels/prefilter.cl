@@ -1,62 +1,53 @@
-/* Stage 1: integer Gaussian prefilter (paper section 4), separable, reads clamped to the
- * frame. 16 pixels per work item. Output P in 1/256 gray levels: (sum + 128) >> 8. */
+/* Stage 1: integer Gaussian prefilter (paper section 4) and the column sums of the
+ * summed-area table. One work item walks down a strip of 16 columns: it computes the
+ * horizontal pass of the row RADIUS below (reads clamped to the frame, rounded to gray
+ * levels), the vertical pass of the current row from the strip's own horizontal results,
+ * and the running column sums (uint16 arithmetic wraps; every box sum taken from the table
+ * is below 2^16, so box sums stay exact). */
 
-__constant int PF_W[2 * RADIUS + 1] = { WEIGHTS };
+__constant ushort PF_W[2 * RADIUS + 1] = { WEIGHTS };
 
-/* Horizontal pass: frame (uchar, stride FSTRIDE) -> hbuf (ushort, stride FSTRIDE).
- * Also counts saturated pixels (<= 2 or >= 253) on even rows. */
-__kernel void prefilter_rows(__global const uchar *frame, __global ushort *hbuf,
-                             __global char *result)
+inline ushort16 horizontal16(__global const uchar *row, int x0)
 {
-    const int x0 = get_global_id(0) * 16;
-    const int y = get_global_id(1);
-    __global const uchar *row = frame + y * FSTRIDE;
-    ushort16 acc;
+    ushort16 acc = (ushort16)(128);
     if (x0 >= RADIUS && x0 + 15 + RADIUS <= W - 1) {
-        acc = (ushort16)(0);
         for (int i = 0; i < 2 * RADIUS + 1; i++)
-            acc += (ushort)PF_W[i] * convert_ushort16(vload16(0, row + x0 + i - RADIUS));
+            acc += PF_W[i] * convert_ushort16(LOAD_UC16(row + x0 + i - RADIUS));
     } else {
-        ushort tmp[16];
+        ushort16_u tmp;
+        ushort *lanes = (ushort *)&tmp;
         for (int l = 0; l < 16; l++) {
-            int s = 0;
+            uint s = 128;
             for (int i = 0; i < 2 * RADIUS + 1; i++)
-                s += PF_W[i] * row[clamp(x0 + l + i - RADIUS, 0, W - 1)];
-            tmp[l] = (ushort)s;
+                s += PF_W[i] * row[CLAMPI(x0 + l + i - RADIUS, 0, W - 1)];
+            lanes[l] = (ushort)s;
         }
-        acc = vload16(0, tmp);
+        acc = tmp.v;
     }
-    if (x0 + 15 < W) {
-        vstore16(acc, 0, hbuf + y * FSTRIDE + x0);
-    } else {
-        ushort tmp[16];
-        vstore16(acc, 0, tmp);
-        for (int l = 0; x0 + l < W; l++) hbuf[y * FSTRIDE + x0 + l] = tmp[l];
-    }
-    if ((y & 1) == 0) {
-        int n = 0;
-        for (int l = 0; l < 16 && x0 + l < W; l++) {
-            uchar p = row[x0 + l];
-            n += (p <= 2 || p >= 253);
-        }
-        if (n) atomic_add((__global int *)(result + STATS_OFFSET) + STAT_SATURATED, n);
-    }
+    return acc >> 8;
 }
 
-/* Vertical pass: hbuf -> P (ushort, stride PSTRIDE, PPAD left padding). */
-__kernel void prefilter_cols(__global const ushort *hbuf, __global ushort *P)
+__kernel void prefilter_columns(__global const uchar *frame, __global uchar *hbuf,
+                                __global uchar *P, __global ushort *sat, int slot)
 {
     const int x0 = get_global_id(0) * 16;
-    const int y = get_global_id(1);
-    /* two 8-lane accumulators: a loop-carried 512-bit vector breaks PoCL 3.0's code
-     * generation on AVX2 machines (broken kernel cache entries / LLVM aborts) */
-    uint8 lo = (uint8)(128), hi = (uint8)(128);
-    for (int j = 0; j < 2 * RADIUS + 1; j++) {
-        __global const ushort *src = hbuf + clamp(y + j - RADIUS, 0, H - 1) * FSTRIDE + x0;
-        lo += (uint)PF_W[j] * convert_uint8(vload8(0, src));
-        hi += (uint)PF_W[j] * convert_uint8(vload8(1, src));
+    __global ushort *S = sat + slot * SAT_SIZE + SPAD + 1 + x0;
+    for (int y = 0; y < RADIUS && y < H; y++)
+        STORE_UC16(hbuf + y * HSTRIDE + x0, convert_uchar16(horizontal16(frame + y * W, x0)));
+    ushort16 colsum = (ushort16)(0);
+    for (int y = 0; y < H; y++) {
+        if (y + RADIUS < H)
+            STORE_UC16(hbuf + (y + RADIUS) * HSTRIDE + x0,
+                       convert_uchar16(horizontal16(frame + (y + RADIUS) * W, x0)));
+        ushort16 acc = (ushort16)(128);
+        for (int j = 0; j < 2 * RADIUS + 1; j++) {
+            const int yy = CLAMPI(y + j - RADIUS, 0, H - 1);
+            acc += PF_W[j] * convert_ushort16(LOAD_UC16(hbuf + yy * HSTRIDE + x0));
+        }
+        const ushort16 p = acc >> 8;
+        /* lanes beyond W fall in padding that nothing reads unmasked */
+        STORE_UC16(P + y * PSTRIDE + PPAD + x0, convert_uchar16(p));
+        colsum += p;
+        STORE_US16(S + (y + 1) * SSTRIDE, colsum);
     }
-    ushort16 out = (ushort16)(convert_ushort8(lo >> 8), convert_ushort8(hi >> 8));
-    /* lanes beyond W land in the row's right padding, which nothing reads unmasked */
-    vstore16(out, 0, P + y * PSTRIDE + PPAD + x0);
 }

@@ -234,7 +234,8 @@ def evaluate(offset: float, frames: int = 6, width=320, height=240):
                         e, d = 1.0, 180.0
                     else:
                         e = math.hypot(s.flow_x - fu, s.flow_y - fv) / sp
-                        d = abs((math.degrees(math.atan2(s.flow_y, s.flow_x) - th) + 180) % 360 - 180)
+                        d = math.degrees(math.atan2(s.flow_y, s.flow_x) - th)
+                        d = abs((d + 180) % 360 - 180)
                     res.setdefault(sp, []).append((e, d))
                     rows.append((s.quality, e))
     print(f"offset {offset} rad: speed | median rel error | median direction error")
