@@ -214,13 +214,14 @@ class OpenCLEngine:
         self.debug_buf = cl.Buffer(ctx, mf.READ_WRITE, 4 * debug_words)
         for buf in (self.frame_buf, self.h_buf, self.p_buf, self.sat_buf):
             cl.enqueue_fill_buffer(self.queue, buf, np.uint8(0), 0, buf.size)
+        # kernel objects of our own (the program is shared per process and shape; kernel
+        # arguments are per object, so engines in different threads never collide)
         prg = self.program
-        # (kernel, global size) in launch order; arguments are set once where they are fixed
-        self._k_prefilter = prg.prefilter_columns
-        self._k_integral = prg.integral_rows
-        self._k_states = prg.ternary_states
-        self._k_evd = prg.velocity_detectors
-        self._k_evidence = prg.summary_evidence
+        self._k_prefilter = cl.Kernel(prg, "prefilter_columns")
+        self._k_integral = cl.Kernel(prg, "integral_rows")
+        self._k_states = cl.Kernel(prg, "ternary_states")
+        self._k_evd = cl.Kernel(prg, "velocity_detectors")
+        self._k_evidence = cl.Kernel(prg, "summary_evidence")
         self._g_strips = (_ceil(width, 16),)
         self._g_rows = (height,)
         self._g_words = (_ceil(lay.NW, 8), height)

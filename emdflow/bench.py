@@ -1,0 +1,166 @@
+"""Benchmark: the OpenCL engine against the numpy reference, OpenCV DIS and a Gaussian blur.
+
+Run ``emdflow bench`` (or ``python -m emdflow.bench``). All methods run in one process on
+the same pre-rendered frames of a camera flight, alternating method by method in blocks
+(default 50 frames, long enough not to measure thread wake-ups); the table gives the
+median ms/frame over the blocks and ratios measured in the same run:
+
+* ``opencl``   — ``FlowEstimator.update`` on the OpenCL backend: frame upload, all kernels,
+  result download to the host (the paper's 7-scale model);
+* ``opencl+summary`` — the same plus :func:`emdflow.summarize` (what the daemon pays);
+* ``numpy``    — the vectorised reference (fewer, shorter blocks: it is slow);
+* ``dis``      — OpenCV's DIS optical flow, ULTRAFAST preset, between consecutive frames;
+* ``blur``     — one ``cv2.GaussianBlur`` 11×11 pass (a yardstick for memory speed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+
+import numpy as np
+
+__all__ = ["main", "run_benchmark"]
+
+SIZES = ((320, 240), (640, 480))
+
+
+def _frames(width: int, height: int, count: int) -> list[np.ndarray]:
+    from .synthetic import CameraFlight
+
+    flight = CameraFlight("gravel", width=width, height=height, flow=(2.3, -1.6), supersample=2, seed=1)
+    return [flight.render(t) for t in range(count)]
+
+
+def _methods(width: int, height: int, frames, *, backend_kwargs=None):
+    import cv2
+
+    from . import FlowEstimator, summarize
+
+    kwargs = backend_kwargs or {}
+    methods = {}
+    est = FlowEstimator(width, height, backend="opencl", **kwargs)
+    methods["opencl"] = lambda i: est.update(frames[i])
+    est_s = FlowEstimator(width, height, backend="opencl", **kwargs)
+    methods["opencl+summary"] = lambda i: summarize(est_s.update(frames[i]))
+    ref = FlowEstimator(width, height, backend="numpy", **kwargs)
+    methods["numpy"] = lambda i: ref.update(frames[i])
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST)
+    n = len(frames)
+    methods["dis"] = lambda i: dis.calc(frames[i], frames[(i + 1) % n], None)
+    methods["blur"] = lambda i: cv2.GaussianBlur(frames[i], (11, 11), 11 / 6)
+    return methods
+
+
+def run_benchmark(*, sizes=SIZES, block: int = 50, rounds: int = 7, numpy_block: int = 3,
+                  frames_per_size: int = 40, backend_kwargs=None, progress=None) -> dict:
+    """Time every method; returns ``{(w, h): {method: median ms/frame}}``."""
+    results = {}
+    for width, height in sizes:
+        frames = _frames(width, height, frames_per_size)
+        methods = _methods(width, height, frames, backend_kwargs=backend_kwargs)
+        for fn in methods.values():  # warm up: kernel builds, caches, history
+            for i in range(4):
+                fn(i)
+        samples = {name: [] for name in methods}
+        cursor = 0
+        for r in range(rounds):
+            for name, fn in methods.items():  # alternate A/B/C... in blocks
+                count = numpy_block if name == "numpy" else block
+                t0 = time.perf_counter()
+                for j in range(count):
+                    fn((cursor + j) % len(frames))
+                samples[name].append((time.perf_counter() - t0) * 1e3 / count)
+            cursor += block
+            if progress:
+                progress(f"{width}x{height}: round {r + 1}/{rounds}")
+        results[(width, height)] = {name: statistics.median(v) for name, v in samples.items()}
+    return results
+
+
+def format_table(results: dict) -> str:
+    lines = [
+        "| size | OpenCL engine | + summary | numpy reference | DIS ultrafast | GaussianBlur 11x11 "
+        "| DIS / OpenCL | OpenCL / blur | numpy / OpenCL |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for (w, h), r in results.items():
+        lines.append(
+            f"| {w}x{h} | {r['opencl']:.3f} ms | {r['opencl+summary']:.3f} ms | {r['numpy']:.1f} ms "
+            f"| {r['dis']:.3f} ms | {r['blur']:.3f} ms | {r['dis'] / r['opencl']:.2f}x "
+            f"| {r['opencl'] / r['blur']:.1f}x | {r['numpy'] / r['opencl']:.0f}x |"
+        )
+    return "\n".join(lines)
+
+
+def write_plot(results: dict, path: str) -> None:
+    """Bar chart of ms/frame by method and resolution (matplotlib, headless)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    methods = ["opencl", "opencl+summary", "dis", "blur", "numpy"]
+    fig, ax = plt.subplots(figsize=(7, 3.6), dpi=100)
+    width = 0.8 / len(results)
+    for k, ((w, h), r) in enumerate(results.items()):
+        xs = np.arange(len(methods)) + k * width
+        bars = ax.bar(xs, [r[m] for m in methods], width, label=f"{w}x{h}")
+        ax.bar_label(bars, [f"{r[m]:.2f}" for m in methods], fontsize=7)
+    ax.set_xticks(np.arange(len(methods)) + width * (len(results) - 1) / 2, methods)
+    ax.set_yscale("log")
+    ax.set_ylabel("ms per frame (log)")
+    ax.set_title("emdflow bench: time per frame (median of alternating blocks)")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _environment() -> str:
+    import platform
+
+    from . import opencl_devices
+
+    device = opencl_devices()[0][1] if opencl_devices() else "none"
+    affinity = os.environ.get("POCL_AFFINITY", "unset (0)")
+    return (
+        f"device: {device}; POCL_AFFINITY={affinity}; cores: {os.cpu_count()}; "
+        f"python {platform.python_version()}"
+    )
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="emdflow bench", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sizes", default="320x240,640x480", help="comma-separated WxH (default: %(default)s)")
+    parser.add_argument("--block", type=int, default=50, help="frames per timed block (default: %(default)s)")
+    parser.add_argument("--rounds", type=int, default=7, help="alternating rounds (default: %(default)s)")
+    parser.add_argument("--plot", metavar="PNG", help="also write a bar chart to this PNG file")
+    parser.add_argument("--json", metavar="FILE", help="also write the results as JSON")
+    parser.add_argument("--delays", default="1", help="temporal delays of the engine, e.g. 1,2,4 (default: 1 = the paper)")
+    args = parser.parse_args(argv)
+    try:
+        sizes = [tuple(int(v) for v in s.lower().split("x")) for s in args.sizes.split(",")]
+    except ValueError:
+        parser.error(f"--sizes {args.sizes!r}: expected e.g. 320x240,640x480")
+    delays = tuple(int(d) for d in args.delays.split(","))
+    kwargs = {"delays": delays} if delays != (1,) else None
+    print(f"# emdflow bench — {_environment()}", flush=True)
+    results = run_benchmark(sizes=sizes, block=args.block, rounds=args.rounds, backend_kwargs=kwargs,
+                            progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
+    print(format_table(results))
+    if args.plot:
+        write_plot(results, args.plot)
+        print(f"plot written to {args.plot}")
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump({f"{w}x{h}": r for (w, h), r in results.items()}, fh, indent=2)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
