@@ -125,9 +125,9 @@ class FlowEstimator:
             arrays belong to the caller.
         """
         frame = self._check(frame)
-        u_code, v_code, stats, hist = self._engine.step(frame)
+        u_code, v_code, stats, hist, positions = self._engine.step(frame)
         self._frames += 1
-        return FlowField(u_code, v_code, stats, hist, self.params, self._frames)
+        return FlowField(u_code, v_code, stats, hist, self.params, self._frames, positions=positions)
 
     def reset(self) -> None:
         """Forget the frame history (the next 3·max(delays) frames give no flow)."""

@@ -6,6 +6,7 @@ import numpy as np
 
 from .params import EngineParams
 from .reference import (
+    STAT_BRIGHTENING,
     STAT_FIRST_CHANGED,
     STAT_SATURATED,
     STAT_TEXTURED,
@@ -35,6 +36,9 @@ class FlowField:
     histogram : ndarray of int64, shape (2, 2·channels, orientation bins)
         Detections binned by axis, signed channel and gradient orientation (the summary's
         input; see :func:`emdflow.reference.summary_statistics`).
+    positions : ndarray of int64, shape (2, 2·channels, position bins) or None
+        The same detections binned by x (horizontal) or y (vertical) position, for the
+        expansion and balance cues.
     frame_index : int
         Frames seen since the last reset, counting this one (1 for the first frame).
     ready : bool
@@ -43,14 +47,16 @@ class FlowField:
 
     __slots__ = (
         "u_code", "v_code", "speeds", "stats", "histogram", "frame_index", "ready",
-        "params", "_u", "_v",
+        "params", "positions", "_u", "_v",
     )
 
-    def __init__(self, u_code, v_code, stats, histogram, params: EngineParams, frame_index: int):
+    def __init__(self, u_code, v_code, stats, histogram, params: EngineParams, frame_index: int,
+                 *, positions=None):
         self.u_code = u_code
         self.v_code = v_code
         self.stats = stats
         self.histogram = histogram
+        self.positions = positions
         self.params = params
         self.speeds = params.speeds
         self.frame_index = int(frame_index)
@@ -105,6 +111,13 @@ class FlowField:
         """Share of sampled pixels at the ends of the 8-bit range (0..1)."""
         h, w = self.shape
         return float(self.stats[STAT_SATURATED]) / max(1, ((h + 1) // 2) * w)
+
+    @property
+    def brightening_fraction(self) -> float:
+        """Share of the finest channel's nonzero states that are positive (0..1; 0.5 if none)."""
+        c = self.params.channels.index((self.params.scales[0], 1))
+        changed = int(self.stats[STAT_FIRST_CHANGED + c])
+        return float(self.stats[STAT_BRIGHTENING]) / changed if changed else 0.5
 
     @property
     def changed_fraction(self) -> np.ndarray:

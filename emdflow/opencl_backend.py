@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from .params import ORIENTATION_BINS, EngineParams
-from .reference import STAT_FIRST_CHANGED
+from .reference import POSITION_BINS, STAT_FIRST_CHANGED
 
 __all__ = ["OpenCLEngine", "list_devices", "kernel_source"]
 
@@ -127,7 +127,9 @@ class _Layout:
         self.plane_words = (height + 2 * self.PADR) * self.NWP
         self.sat_elems = (height + 1) * self.SSTRIDE
         self.hist_size = 2 * 2 * len(chans) * ORIENTATION_BINS
-        self.n_stats = STAT_FIRST_CHANGED + len(chans) + self.HIST_COPIES * self.hist_size
+        self.pos_size = 2 * 2 * len(chans) * POSITION_BINS
+        self.n_fixed = STAT_FIRST_CHANGED + len(chans)
+        self.n_stats = self.n_fixed + self.pos_size + self.HIST_COPIES * self.hist_size
         self.stats_offset = _ceil(2 * width * height, 64) * 64
         self.result_bytes = self.stats_offset + 4 * self.n_stats
         table = EngineParams.orientation_table()
@@ -147,6 +149,8 @@ class _Layout:
             "STATS_OFFSET": self.stats_offset,
             "EVIDENCE_ROW_STEP": params.evidence_row_step(height),
             "HIST_COPIES": self.HIST_COPIES,
+            "POS_BINS": POSITION_BINS,
+            "FINEST_CHANNEL": chans.index((params.scales[0], 1)),
             "NBINS": ORIENTATION_BINS,
             "ORIENT_C": join(table[:, 0]),
             "ORIENT_S": join(table[:, 1]),
@@ -234,7 +238,7 @@ class OpenCLEngine:
         self.t = 0
 
     def step(self, frame: np.ndarray):
-        """Process one frame; returns ``(u_code, v_code, stats, hist)`` like the reference."""
+        """Process one frame; returns ``(u_code, v_code, stats, hist, positions)`` like the reference."""
         cl, q, lay = self._cl, self.queue, self.layout
         t = np.int32(self.t)
         slot = np.int32(self.t % lay.SAT_SLOTS)
@@ -253,10 +257,11 @@ class OpenCLEngine:
         v_code = host[hw : 2 * hw].view(np.int8).reshape(lay.H, lay.W)
         ints = host[lay.stats_offset :].view(np.int32)
         n_ch = len(lay.channels)
-        stats = ints[: STAT_FIRST_CHANGED + n_ch].astype(np.int64)
-        copies = ints[STAT_FIRST_CHANGED + n_ch :].reshape(lay.HIST_COPIES, lay.hist_size)
+        stats = ints[: lay.n_fixed].astype(np.int64)
+        positions = ints[lay.n_fixed : lay.n_fixed + lay.pos_size].astype(np.int64)
+        copies = ints[lay.n_fixed + lay.pos_size :].reshape(lay.HIST_COPIES, lay.hist_size)
         hist = copies.sum(axis=0, dtype=np.int64).reshape(2, 2 * n_ch, ORIENTATION_BINS)
-        return u_code, v_code, stats, hist
+        return u_code, v_code, stats, hist, positions.reshape(2, 2 * n_ch, POSITION_BINS)
 
     # ---- inspection (tests): unpack device state into the reference's representation ----
     def _unpack(self, words: np.ndarray) -> np.ndarray:

@@ -44,7 +44,9 @@ __all__ = [
     "STAT_V_DETECTIONS",
     "STAT_TEXTURED",
     "STAT_SATURATED",
+    "STAT_BRIGHTENING",
     "STAT_FIRST_CHANGED",
+    "POSITION_BINS",
 ]
 
 #: Detector directions as unit steps (dx, dy) in image coordinates (y down).
@@ -55,7 +57,10 @@ STAT_U_DETECTIONS = 0  #: pixels with a horizontal detection
 STAT_V_DETECTIONS = 1  #: pixels with a vertical detection
 STAT_TEXTURED = 2  #: sampled pixels with gradient above the threshold (see summary_statistics)
 STAT_SATURATED = 3  #: sampled pixels at 0..2 or 253..255
-STAT_FIRST_CHANGED = 4  #: then one count of nonzero states per channel
+STAT_BRIGHTENING = 4  #: positive states of the finest one-frame channel (brightness steps)
+STAT_FIRST_CHANGED = 5  #: then one count of nonzero states per channel
+#: Detections are also counted by position: x (horizontal) or y (vertical) in this many bins.
+POSITION_BINS = 16
 
 
 def prefilter(frame: np.ndarray, weights: tuple[int, ...]) -> np.ndarray:
@@ -258,17 +263,23 @@ def summary_statistics(
       ``|P(x+1)−P(x−1)| + |P(y+1)−P(y−1)| > floor(2θ)`` — a 1 px/frame motion there
       would change a scale-1 receptor by more than θ;
     * saturated pixels: on even rows, raw value ≤ 2 or ≥ 253;
+    * positive states of the finest one-frame channel (a global brightness step turns
+      most of them on at once);
     * nonzero states per channel;
     * the detection histogram ``hist[axis, code, orientation]``: detections on every
       ``EngineParams.evidence_row_step(H)``-th row,
       ``axis`` 0 = horizontal / 1 = vertical, ``code = 2c + (1 if negative)``,
       ``orientation`` the bin of the gradient of the receptor image ``R_k`` at the middle
-      receptor ``B`` at ``t−D`` (spec §6), reads clamped to the valid receptor range.
+      receptor ``B`` at ``t−D`` (spec §6), reads clamped to the valid receptor range;
+    * the position histogram ``positions[axis, code, bin]`` of the same detections: ``bin``
+      is ``x · POSITION_BINS // W`` for horizontal and ``y · POSITION_BINS // H`` for
+      vertical detections (expansion and balance cues).
 
     Returns
     -------
-    stats : ndarray of int64, shape (4 + n_channels,)
+    stats : ndarray of int64, shape (5 + n_channels,)
     hist : ndarray of int64, shape (2, 2·n_channels, ORIENTATION_BINS)
+    positions : ndarray of int64, shape (2, 2·n_channels, POSITION_BINS)
     """
     channels = params.channels
     H, W = frame.shape
@@ -285,6 +296,9 @@ def summary_statistics(
     stats[STAT_SATURATED] = np.count_nonzero((even <= 2) | (even >= 253))
     for c, s in enumerate(states_now):
         stats[STAT_FIRST_CHANGED + c] = np.count_nonzero(s)
+    finest = channels.index((params.scales[0], 1))
+    stats[STAT_BRIGHTENING] = np.count_nonzero(states_now[finest] > 0)
+    positions = np.zeros((2, 2 * len(channels), POSITION_BINS), np.int64)
 
     hist = np.zeros((2, 2 * len(channels), ORIENTATION_BINS), np.int64)
     for axis, code in enumerate((u_code, v_code)):
@@ -296,6 +310,8 @@ def summary_statistics(
         cval = code[ys, xs].astype(np.int64)
         chan = np.abs(cval) - 1
         negative = cval < 0
+        where = xs * POSITION_BINS // W if axis == 0 else ys * POSITION_BINS // H
+        np.add.at(positions[axis], (2 * chan + negative, where), 1)
         ks = np.array([channels[c][0] for c in range(len(channels))])[chan]
         ds = np.array([channels[c][1] for c in range(len(channels))])[chan]
         step = np.where(negative, -ks, ks)
@@ -317,7 +333,7 @@ def summary_statistics(
         bins = orientation_bins(gxs[keep], gys[keep])
         codes = 2 * chan[keep] + negative[keep]
         np.add.at(hist[axis], (codes, bins), 1)
-    return stats, hist
+    return stats, hist, positions
 
 
 class ReferenceEngine:
@@ -344,7 +360,7 @@ class ReferenceEngine:
         self.matches: dict = {}
 
     def step(self, frame: np.ndarray):
-        """Process one frame; returns ``(u_code, v_code, stats, hist)``."""
+        """Process one frame; returns ``(u_code, v_code, stats, hist, positions)``."""
         prm = self.params
         p_now = prefilter(frame, prm.weights)
         self._p_history.append(p_now)
@@ -378,8 +394,8 @@ class ReferenceEngine:
             receptors_mid[(k, d)] = box_sums(p_mid, k)
         u_code = fuse_channels(pos[0], neg[0])
         v_code = fuse_channels(pos[1], neg[1])
-        stats, hist = summary_statistics(
+        stats, hist, positions = summary_statistics(
             prm, frame, p_now, u_code, v_code, receptors_mid, self.states
         )
         self.frame_count += 1
-        return u_code, v_code, stats, hist
+        return u_code, v_code, stats, hist, positions

@@ -74,8 +74,10 @@ class FlightTruth:
         Image motion of the ground between the previous frame and this one at the image
         centre, px/frame (x right, y down).
     expansion_rate : float
-        Divergence of the flow field, 1/frame (``u = flow_x + e/2·(x−cx)``,
-        ``v = flow_y + e/2·(y−cy)`` with ``e`` this value); 0 for a translation.
+        Relative growth of the image scale per frame, ``r`` (1/frame); 0 for a
+        translation. At frame ``t−1``'s pixel positions the flow is ``u = flow_x + r·X``,
+        ``v = flow_y + r·Y`` with ``(X, Y)`` measured from the image centre, so the
+        divergence is ``2r`` and the time to contact ``1/r`` frames.
     """
 
     flow_x: float

@@ -16,6 +16,8 @@
  *   SHARP           1 to accept the sharp template
  *   EVIDENCE_ROW_STEP  rows between the rows whose detections feed the histogram
  *   HIST_COPIES     copies of the histogram (spread the atomic increments over cache lines)
+ *   POS_BINS        position bins of the detection position histogram
+ *   FINEST_CHANNEL  channel whose positive states are counted (brightness steps)
  *   STATS_OFFSET    byte offset of the int32 statistics in the result buffer
  *   NBINS           orientation bins; ORIENT_C, ORIENT_S boundary table (x 2^14)
  *
@@ -30,8 +32,11 @@
 #define STAT_V 1
 #define STAT_TEXTURED 2
 #define STAT_SATURATED 3
-#define STAT_CHANGED 4
-#define STAT_HIST (STAT_CHANGED + NCH)
+#define STAT_BRIGHTENING 4
+#define STAT_CHANGED 5
+#define STAT_POS (STAT_CHANGED + NCH)
+#define POS_SIZE (2 * 2 * NCH * POS_BINS)
+#define STAT_HIST (STAT_POS + POS_SIZE)
 #define HIST_SIZE (2 * 2 * NCH * NBINS)
 
 __constant int CK[NCH] = { CH_K };

@@ -51,7 +51,7 @@ __kernel void summary_evidence(__global char *result, __global const ushort *sat
         int count = 0;
         /* neighbouring detections along an edge often fall in the same bin: count runs
          * and flush each run with one atomic add */
-        int run_bin = -1, run_len = 0;
+        int run_bin = -1, run_len = 0, pos_bin = -1, pos_len = 0;
         for (int x0 = 0; x0 < W; x0 += 8) {
             ulong v = 0;
             if (x0 + 8 <= W) {
@@ -68,6 +68,14 @@ __kernel void summary_evidence(__global char *result, __global const ushort *sat
                 const int x = x0 + l;
                 const int c = (code > 0 ? code : -code) - 1;
                 const int negative = code < 0;
+                const int where = axis ? y * POS_BINS / H : x * POS_BINS / W;
+                const int pbin = ((axis * 2 * NCH) + 2 * c + negative) * POS_BINS + where;
+                if (pbin != pos_bin) {
+                    if (pos_len) ATOMIC_ADD(stats + STAT_POS + pos_bin, pos_len);
+                    pos_bin = pbin;
+                    pos_len = 0;
+                }
+                pos_len++;
                 const int k = CK[c], r = k / 2, D = CD[c];
                 __global const ushort *S = sat + pos_mod(t - D, SAT_SLOTS) * SAT_SIZE;
                 const int step = negative ? -k : k;
@@ -90,6 +98,7 @@ __kernel void summary_evidence(__global char *result, __global const ushort *sat
             }
         }
         if (run_len) ATOMIC_ADD(hist + run_bin, run_len);
+        if (pos_len) ATOMIC_ADD(stats + STAT_POS + pos_bin, pos_len);
         if (count) ATOMIC_ADD(stats + (axis ? STAT_V : STAT_U), count);
     }
 }

@@ -35,7 +35,7 @@ __kernel void ternary_states(__global const ushort *sat, __global uint *planes,
             continue;
         }
         __global const ushort *S_then = sat + pos_mod(t - D, SAT_SLOTS) * SAT_SIZE;
-        int changed = 0;
+        int changed = 0, brightening = 0;
         for (int i = 0; i < NW; i++) {
             uint pw = 0, nw = 0;
             for (int part = 0; part < 2; part++) {
@@ -49,8 +49,10 @@ __kernel void ternary_states(__global const ushort *sat, __global uint *planes,
             pos_row[i] = pw;
             neg_row[i] = nw;
             changed += POPCOUNT(pw | nw);
+            brightening += POPCOUNT(pw);
         }
         if (changed) ATOMIC_ADD(stats + STAT_CHANGED + c, changed);
+        if (c == FINEST_CHANNEL && brightening) ATOMIC_ADD(stats + STAT_BRIGHTENING, brightening);
     }
 
     if ((y & 1) == 0) {

@@ -22,8 +22,8 @@ def _compare(width, height, frames, params=EngineParams()):
     ocl = opencl_backend.OpenCLEngine(width, height, params, debug=True)
     fired = 0
     for t, frame in enumerate(frames):
-        u_r, v_r, stats_r, hist_r = ref.step(frame)
-        u_o, v_o, stats_o, hist_o = ocl.step(frame)
+        u_r, v_r, stats_r, hist_r, pos_r = ref.step(frame)
+        u_o, v_o, stats_o, hist_o, pos_o = ocl.step(frame)
         for c, (s_r, s_o) in enumerate(zip(ref.states, ocl.debug_states())):
             assert np.array_equal(s_r, s_o), f"frame {t}: states of channel {params.channels[c]} differ"
         matches = ocl.debug_matches()
@@ -34,6 +34,7 @@ def _compare(width, height, frames, params=EngineParams()):
         assert np.array_equal(v_r, v_o), f"frame {t}: v codes differ"
         assert np.array_equal(stats_r, stats_o), f"frame {t}: stats {stats_r} != {stats_o}"
         assert np.array_equal(hist_r, hist_o), f"frame {t}: histograms differ"
+        assert np.array_equal(pos_r, pos_o), f"frame {t}: position histograms differ"
     return fired
 
 
