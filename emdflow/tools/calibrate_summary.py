@@ -48,12 +48,13 @@ CALIBRATION_TEXTURES = ("moon", "coffee", "astronaut", "rocket")
 
 
 def collect(flights: int, out: str, frames: int = 7, seed: int = 20240601, width=320, height=240,
-            textures=CALIBRATION_TEXTURES):
+            textures=CALIBRATION_TEXTURES, backend: str = "opencl"):
     """Render ``flights`` random flights; store every ready frame's histogram and truth."""
     from emdflow import FlowEstimator
     from emdflow.synthetic import CameraFlight, load_texture
 
     rng = np.random.default_rng(seed)
+    est = FlowEstimator(width, height, backend=backend)
     hists, flows, stats, names = [], [], [], []
     t0 = time.time()
     for i in range(flights):
@@ -68,7 +69,7 @@ def collect(flights: int, out: str, frames: int = 7, seed: int = 20240601, width
             seed=int(rng.integers(1 << 30)),
             start=(float(rng.uniform(0, tw)), float(rng.uniform(0, th))),
         )
-        est = FlowEstimator(width, height, backend="numpy")
+        est.reset()
         for t in range(frames):
             field = est.update(flight.render(t))
             if field.ready:
@@ -76,7 +77,7 @@ def collect(flights: int, out: str, frames: int = 7, seed: int = 20240601, width
                 flows.append(flow)
                 names.append(texture)
                 stats.append(field.stats.copy())
-        if (i + 1) % 20 == 0:
+        if (i + 1) % 200 == 0:
             print(f"{i + 1}/{flights} flights, {time.time() - t0:.0f} s", file=sys.stderr)
     np.savez_compressed(out, hist=np.array(hists), flow=np.array(flows), stats=np.array(stats),
                         texture=np.array(names))
@@ -203,54 +204,109 @@ def fit_main(data, write):
 
 EVALUATION_TEXTURES = ("gravel", "brick", "grass", "camera")
 EVALUATION_SPEEDS = (1, 2, 3, 4, 5, 7, 9, 11, 13)
+#: Seed of the random-direction evaluation set (``evaluate --random``).
+RANDOM_DIRECTIONS_SEED = 4242
 
 
-def evaluate(offset: float, frames: int = 6, width=320, height=240):
+def _directions(offset, random_set):
+    """The 8 flight directions (radians) of one (speed, texture) cell, as a function of
+    the cell's index (the random set draws fresh directions per cell)."""
+    if not random_set:
+        return lambda cell: [a * math.pi / 4 + offset for a in range(8)]
+    rng = np.random.default_rng(RANDOM_DIRECTIONS_SEED)
+    table = rng.uniform(0.0, 2.0 * math.pi, (len(EVALUATION_SPEEDS) * len(EVALUATION_TEXTURES), 8))
+    return lambda cell: list(table[cell])
+
+
+def render_evaluation(offset: float = 0.0, random_set: bool = False, frames: int = 6,
+                      backend: str = "opencl", width=320, height=240):
     """Flights over the evaluation textures: 9 speeds × 4 textures × 8 directions
-    (multiples of 45° plus ``offset`` radians), noise σ = 2, ``frames`` frames each; prints
-    median relative / direction error per speed (quality-0 frames count as 100 % / 180°),
-    a quality-band table and the mean time per :func:`summarize` call."""
-    from emdflow import FlowEstimator, summarize
+    (multiples of 45° plus ``offset`` radians, or random directions), noise σ = 2,
+    ``frames`` ready frames each. Returns the histograms, statistics and true flows."""
+    from emdflow import FlowEstimator
     from emdflow.synthetic import CameraFlight
 
-    res, rows, spent, calls = {}, [], 0.0, 0
+    est = FlowEstimator(width, height, backend=backend)
+    warm = est.params.history_frames
+    directions = _directions(offset, random_set)
+    hists, stats, flows = [], [], []
+    cell = 0
     for sp in EVALUATION_SPEEDS:
         for texture in EVALUATION_TEXTURES:
-            for a in range(8):
-                th = a * math.pi / 4 + offset
+            for a, th in enumerate(directions(cell)):
                 fu, fv = sp * math.cos(th), sp * math.sin(th)
                 flight = CameraFlight(texture, width=width, height=height, flow=(fu, fv),
                                       noise_sigma=2.0, seed=a)
-                est = FlowEstimator(width, height, backend="numpy")
-                for t in range(frames):
+                est.reset()
+                for t in range(frames + warm):
                     field = est.update(flight.render(t))
-                    if not field.ready:
-                        continue
-                    t0 = time.perf_counter()
-                    s = summarize(field)
-                    spent += time.perf_counter() - t0
-                    calls += 1
-                    if s.quality == 0:
-                        e, d = 1.0, 180.0
-                    else:
-                        e = math.hypot(s.flow_x - fu, s.flow_y - fv) / sp
-                        d = math.degrees(math.atan2(s.flow_y, s.flow_x) - th)
-                        d = abs((d + 180) % 360 - 180)
-                    res.setdefault(sp, []).append((e, d))
-                    rows.append((s.quality, e))
-    print(f"offset {offset} rad: speed | median rel error | median direction error")
-    for sp, v in res.items():
-        v = np.array(v)
-        print(f"  {sp:3d} | {np.median(v[:, 0]) * 100:5.1f} % | {np.median(v[:, 1]):5.2f} deg")
-    v = np.array([x for vv in res.values() for x in vv])
-    print(f"  all | {np.median(v[:, 0]) * 100:5.1f} % | {np.median(v[:, 1]):5.2f} deg"
-          f"   ({spent / max(1, calls) * 1e3:.2f} ms per summarize call)")
-    q = np.array(rows)
-    print("quality band | frames | median rel error")
+                    if field.ready:
+                        hists.append(field.histogram.copy())
+                        stats.append(field.stats.copy())
+                        flows.append((fu, fv))
+            cell += 1
+    return dict(hist=np.array(hists), stats=np.array(stats), flow=np.array(flows),
+                shape=np.array([height, width]), frame_index=warm + 1)
+
+
+def score(data, options=None, out=print):
+    """summarize() every stored frame; prints median relative / direction error per speed
+    (quality-0 frames count as 100 % / 180°), coverage (share of frames with quality > 0),
+    a quality-band table and the mean time per :func:`summarize` call. Returns
+    ``(errors (n, 2), quality (n,))``."""
+    from emdflow import summarize
+    from emdflow.field import FlowField
+    from emdflow.params import EngineParams
+
+    h, w = (int(x) for x in data["shape"])
+    codes = np.zeros((h, w), np.int8)
+    params = EngineParams()
+    flows = np.asarray(data["flow"], np.float64)
+    fields = [FlowField(codes, codes, st, hi, params, int(data["frame_index"]))
+              for hi, st in zip(data["hist"], data["stats"])]
+    t0 = time.perf_counter()
+    sums = [summarize(f, options=options) for f in fields]
+    spent = (time.perf_counter() - t0) / max(1, len(fields))
+    speed = np.hypot(flows[:, 0], flows[:, 1])
+    err = np.empty((len(sums), 2))
+    qual = np.array([s.quality for s in sums])
+    for i, (s, (fu, fv), sp) in enumerate(zip(sums, flows, speed)):
+        if s.quality == 0:
+            err[i] = 1.0, 180.0
+        else:
+            d = math.degrees(math.atan2(s.flow_y, s.flow_x) - math.atan2(fv, fu))
+            err[i] = math.hypot(s.flow_x - fu, s.flow_y - fv) / sp, abs((d + 180) % 360 - 180)
+    out("  speed | frames | median rel error | median direction error | coverage")
+    for sp in np.unique(np.round(speed, 6)):
+        m = np.isclose(speed, sp)
+        out(f"  {sp:5.0f} | {int(m.sum()):6d} | {np.median(err[m, 0]) * 100:5.1f} % "
+            f"| {np.median(err[m, 1]):5.2f} deg | {np.mean(qual[m] > 0) * 100:5.1f} %")
+    out(f"    all | {len(err):6d} | {np.median(err[:, 0]) * 100:5.1f} % "
+        f"| {np.median(err[:, 1]):5.2f} deg | {np.mean(qual > 0) * 100:5.1f} %"
+        f"   ({spent * 1e3:.3f} ms per summarize call)")
+    out("  quality band | frames | median rel error | 90th pct rel error")
     for lo, hi in ((0, 1), (1, 64), (64, 128), (128, 192), (192, 256)):
-        m = (q[:, 0] >= lo) & (q[:, 0] < hi)
+        m = (qual >= lo) & (qual < hi)
         if m.any():
-            print(f"  {lo:3d}-{hi - 1:3d} | {int(m.sum()):4d} | {np.median(q[m, 1]) * 100:5.1f} %")
+            out(f"    {lo:3d}-{hi - 1:3d}   | {int(m.sum()):6d} | {np.median(err[m, 0]) * 100:5.1f} % "
+                f"| {np.percentile(err[m, 0], 90) * 100:5.1f} %")
+    return err, qual
+
+
+def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: str = "opencl",
+             save: str | None = None, data: str | None = None):
+    """Render (or load with ``data``) the evaluation flights and :func:`score` them."""
+    if data:
+        with np.load(data) as z:
+            flights = {k: z[k] for k in z.files}
+        label = data
+    else:
+        flights = render_evaluation(offset, random_set, frames, backend)
+        label = "random directions" if random_set else f"offset {offset} rad"
+        if save:
+            np.savez_compressed(save, **flights)
+    print(f"{label}: {len(flights['flow'])} frames")
+    return score(flights)
 
 
 def main(argv=None):
@@ -263,18 +319,30 @@ def main(argv=None):
     c.add_argument("--out", default="/tmp/emdflow_calib.npz")
     c.add_argument("--textures", default=",".join(CALIBRATION_TEXTURES),
                    help="comma-separated texture names (default: the calibration set)")
+    c.add_argument("--backend", default="opencl", choices=("opencl", "numpy"))
     f = sub.add_parser("fit")
     f.add_argument("data", nargs="+")
-    f.add_argument("--write", action="store_true", help="rewrite the table in summary.py")
+    f.add_argument("--write", action="store_true",
+                   help="write emdflow/summary_calibration.npz")
     e = sub.add_parser("evaluate")
     e.add_argument("--offset", type=float, default=0.3, help="direction offset, radians")
+    e.add_argument("--random", action="store_true",
+                   help="random directions (seeded) instead of multiples of 45° + offset")
+    e.add_argument("--frames", type=int, default=6, help="ready frames per flight")
+    e.add_argument("--backend", default="opencl", choices=("opencl", "numpy"))
+    e.add_argument("--save", help="also store the rendered histograms here (.npz)")
+    e.add_argument("--data", help="score histograms stored by --save instead of rendering")
     a = ap.parse_args(argv)
     if a.cmd == "collect":
-        collect(a.flights, a.out, a.frames, a.seed, textures=tuple(a.textures.split(",")))
+        bad = set(a.textures.split(",")) & set(EVALUATION_TEXTURES)
+        if bad:
+            ap.error(f"--textures: {', '.join(sorted(bad))} belong to the evaluation set")
+        collect(a.flights, a.out, a.frames, a.seed, textures=tuple(a.textures.split(",")),
+                backend=a.backend)
     elif a.cmd == "fit":
         fit_main(a.data, a.write)
     else:
-        evaluate(a.offset)
+        evaluate(a.offset, a.random, a.frames, a.backend, a.save, a.data)
 
 
 if __name__ == "__main__":

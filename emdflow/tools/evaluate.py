@@ -66,7 +66,9 @@ __all__ = [
     "Accumulator",
     "run_evaluation",
     "format_table",
+    "format_markdown",
     "write_csv",
+    "read_csv",
     "plot_results",
     "CSV_COLUMNS",
     "add_arguments",
@@ -507,6 +509,50 @@ def format_table(rows: list[dict], *, engine_label: str = "emd") -> str:
     return "\n".join(out)
 
 
+def format_markdown(rows: list[dict], *, engine_label: str = "emd", full_variants=("base",)) -> str:
+    """The results as Markdown: per speed for ``full_variants``, then one line per variant.
+
+    Columns as in :func:`format_table`; the second table holds the ``all`` rows.
+    """
+    name = engine_label.upper()
+    by = {(r["variant"], r["method"], str(r["speed"])): r for r in rows}
+    variants = list(dict.fromkeys(r["variant"] for r in rows))
+    speeds = list(dict.fromkeys(str(r["speed"]) for r in rows))
+    head = (f"| {{key}} | {name} density | {name} sign | {name} px err | {name} rel err | {name} dir err | "
+            f"{name} coverage | DIS px err | DIS rel err | DIS dir err |\n|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+
+    def line(key, e, d):
+        cells = [key, _pct(e["density"], 1), _pct(e["sign_accuracy"]), _num(e["pixel_error_median"], ".2f"),
+                 _pct(e["summary_rel_error_median"], 1), _num(e["summary_dir_error_median_deg"], ".1f") + "°",
+                 _pct(e["coverage"])]
+        if d is not None:
+            cells += [_num(d["pixel_error_median"], ".2f"), _pct(d["summary_rel_error_median"], 1),
+                      _num(d["summary_dir_error_median_deg"], ".1f") + "°"]
+        else:
+            cells += ["", "", ""]
+        return "| " + " | ".join(cells) + " |"
+
+    out = []
+    for vname in full_variants:
+        if not any(k[0] == vname for k in by):
+            continue
+        desc = VARIANTS[vname].description if vname in VARIANTS else vname
+        out.append(f"Variant `{vname}` ({desc}), per speed (px/frame):\n")
+        out.append(head.format(key="speed"))
+        for sp in speeds:
+            e = by.get((vname, engine_label, sp))
+            if e is not None:
+                out.append(line(sp if sp == "all" else f"{float(sp):g}", e, by.get((vname, "dis", sp))))
+        out.append("")
+    out.append("All speeds, per variant:\n")
+    out.append(head.format(key="variant"))
+    for vname in variants:
+        e = by.get((vname, engine_label, "all"))
+        if e is not None:
+            out.append(line(vname, e, by.get((vname, "dis", "all"))))
+    return "\n".join(out) + "\n"
+
+
 def write_csv(rows: list[dict], path) -> None:
     """Write the rows with the header :data:`CSV_COLUMNS` (floats with 6 significant digits)."""
     with open(path, "w", newline="") as f:
@@ -517,6 +563,36 @@ def write_csv(rows: list[dict], path) -> None:
 
 
 _FLOOR = 0.05  # plotted floor of the log axes (% and degrees)
+
+
+def read_csv(path) -> list[dict]:
+    """Read rows written by :func:`write_csv` back (numbers as float, ``speed`` as float or "all").
+
+    Raises
+    ------
+    ValueError
+        If the file is not an ``emdflow eval`` CSV (naming it).
+    """
+    name = os.fspath(path)
+    try:
+        with open(name, newline="") as f:
+            reader = csv.DictReader(f)
+            if tuple(reader.fieldnames or ()) != CSV_COLUMNS:
+                raise ValueError(f"{name}: not an emdflow eval CSV (header differs)")
+            rows = []
+            for r in reader:
+                for key in CSV_COLUMNS[2:]:
+                    if key == "speed" and r[key] == "all":
+                        continue
+                    r[key] = int(r[key]) if key == "frames" else float(r[key])
+                rows.append(r)
+    except (OSError, UnicodeDecodeError) as e:
+        raise ValueError(f"{name}: cannot read ({getattr(e, 'strerror', None) or e})") from None
+    except (KeyError, TypeError, ValueError) as e:
+        if str(e).startswith(name):
+            raise
+        raise ValueError(f"{name}: not an emdflow eval CSV ({e})") from None
+    return rows
 
 
 def plot_results(rows: list[dict], path, *, title: str | None = None, engine_label: str = "emd") -> None:
@@ -531,7 +607,7 @@ def plot_results(rows: list[dict], path, *, title: str | None = None, engine_lab
     import matplotlib.pyplot as plt
 
     variants = list(dict.fromkeys(r["variant"] for r in rows))
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4), dpi=80)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.6), dpi=80)
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for i, vname in enumerate(variants):
         for method, style in ((engine_label, "-"), ("dis", "--")):
@@ -545,7 +621,7 @@ def plot_results(rows: list[dict], path, *, title: str | None = None, engine_lab
             axes[0].plot(sp, [max(_FLOOR, 100 * r["summary_rel_error_median"]) for r in sel], **kw)
             axes[1].plot(sp, [max(_FLOOR, r["summary_dir_error_median_deg"]) for r in sel], **kw)
     for ax, ylabel, top in zip(axes, ("summary relative error, median (%)", "summary direction error, median (°)"),
-                               (150.0, 200.0)):
+                               (400.0, 200.0)):
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_ylim(_FLOOR, top)
@@ -557,10 +633,12 @@ def plot_results(rows: list[dict], path, *, title: str | None = None, engine_lab
         ax.get_xaxis().set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
     axes[0].axhline(10, color="gray", lw=0.8, ls=":")
     axes[1].axhline(2, color="gray", lw=0.8, ls=":")
-    axes[1].legend(fontsize=7, ncol=2, loc="upper left")
+    handles, labels = axes[0].get_legend_handles_labels()
     if title:
         fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.1, 1, 1))
+    fig.legend(handles, labels, loc="lower center", ncol=min(6, max(1, len(labels) // 2)), fontsize=7,
+               frameon=False)
     fig.savefig(path, format="png")
     plt.close(fig)
 
@@ -624,6 +702,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--csv", default="emdflow_eval.csv", metavar="PATH", help="CSV output (default %(default)s)")
     p.add_argument("--plot", default="emdflow_eval.png", metavar="PATH",
                    help="PNG plot (default %(default)s; '' to skip)")
+    p.add_argument("--from-csv", metavar="CSV",
+                   help="fly nothing: print the table and draw the plot of an earlier run's CSV")
+    p.add_argument("--title", help="title of the plot")
+    p.add_argument("--markdown", metavar="PATH", help="also write the tables as Markdown (for the README)")
     p.add_argument("--label", default="emd", help="method name of the engine in the outputs (default emd)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_engine_arguments(p)
@@ -669,6 +751,21 @@ def run(args) -> int:
     """Run ``emdflow eval`` with parsed arguments; returns the exit code."""
     from emdflow.tools import ToolError, make_estimator, progress_bar
 
+    if args.from_csv:
+        try:
+            rows = read_csv(args.from_csv)
+        except ValueError as e:
+            raise ToolError(str(e), 2) from None
+        label = next((r["method"] for r in rows if r["method"] != "dis"), args.label)
+        print(format_table(rows, engine_label=label))
+        if args.markdown:
+            Path(args.markdown).write_text(format_markdown(rows, engine_label=label))
+            print(f"wrote {args.markdown}")
+        if args.plot:
+            title = args.title or f"{label.upper()} vs OpenCV DIS ULTRAFAST ({Path(args.from_csv).name})"
+            plot_results(rows, args.plot, title=title, engine_label=label)
+            print(f"wrote {args.plot}")
+        return 0
     try:
         config = config_from_args(args)
     except ValueError as e:
@@ -701,10 +798,13 @@ def run(args) -> int:
     if args.csv:
         write_csv(rows, args.csv)
         print(f"wrote {args.csv}")
+    if args.markdown:
+        Path(args.markdown).write_text(format_markdown(rows, engine_label=args.label))
+        print(f"wrote {args.markdown}")
     if args.plot:
         title = (f"{args.label.upper()} ({est_probe.backend}) vs OpenCV DIS ULTRAFAST, {config.width}x{config.height}, "
                  f"{config.n_flights} flights")
-        plot_results(rows, args.plot, title=title, engine_label=args.label)
+        plot_results(rows, args.plot, title=args.title or title, engine_label=args.label)
         print(f"wrote {args.plot}")
     return 0
 

@@ -1,0 +1,1 @@
+"""emdflow appliance firmware: frame sources, the daemon, and the serial links to autopilots."""

@@ -1,0 +1,416 @@
+"""What every link shares: the sample and config types, rate choice, and the frame-driven
+scheduling around :class:`~firmware_py.angular.FlowIntegrator` and
+:class:`~firmware_py.links.serial_port.SerialTransport`.
+
+Timing model
+------------
+* ``submit()`` adds a frame to the integrator; when the pending interval (capture-timestamp
+  time, not wall clock) reaches the message period, the protocol encodes it and it is queued
+  and written at once — messages go out as soon as the flow is known, at a steady rate.
+* ``service(now_host_us)`` does everything that depends on host time: reopening the port,
+  reading the autopilot's side, heartbeats, and the blind keep-alive.
+* **Blind camera.** ArduPilot marks the flow sensor unhealthy when the last message is
+  ≥ 0.5 s old, INAV after 0.2 s, and PX4 restarts its accumulation on gaps; all three drop
+  quality-0 samples from the estimator but keep the sensor "present". So while no frames
+  arrive the link keeps sending the flow message with zero flow and quality 0 at
+  :data:`BLIND_RATE_HZ` (integration time = real host time since the previous message,
+  below 0.5 s), next to the 1 Hz heartbeat. The daemon may submit its own quality-0 samples
+  instead; then these keep-alives never trigger.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+from ..angular import VALID_ROTATIONS_DEG, FlowIntegrator, FlowInterval
+from .message_log import MessageLog
+from .serial_port import OutgoingMessage, SerialTransport, host_now_us
+
+__all__ = ["FlowSample", "LinkConfig", "FlowLink", "choose_message_rate", "AUTOPILOTS", "PROTOCOLS",
+           "BLIND_RATE_HZ", "resolve_protocol"]
+
+log = logging.getLogger(__name__)
+
+AUTOPILOTS = ("ardupilot", "px4", "inav", "both")
+PROTOCOLS = ("mavlink", "msp")
+
+#: Quality-0 keep-alive messages per second while no frames arrive.
+BLIND_RATE_HZ = 10.0
+#: Fraction of the line's capacity the link may use (the rest absorbs jitter and bursts).
+BUSY_FRACTION = 0.6
+
+
+@dataclass(frozen=True, slots=True)
+class FlowSample:
+    """One processed frame's flow summary, as the daemon hands it to the link.
+
+    Attributes
+    ----------
+    timestamp_us : int
+        Capture timestamp of the frame, µs, source clock (file sources: index / fps).
+    capture_host_us : int
+        Host monotonic time when the frame was captured/received, µs (for latency).
+    flow_x, flow_y : float
+        Image flow since the previous frame, px/frame, x right, y down.
+    quality : int
+        0 (no usable flow) … 255 (best).
+    """
+
+    timestamp_us: int
+    capture_host_us: int
+    flow_x: float
+    flow_y: float
+    quality: int
+
+
+@dataclass(kw_only=True)
+class LinkConfig:
+    """Configuration of a link to a flight controller.
+
+    Attributes
+    ----------
+    port : str or None
+        Serial device (``/dev/ttyAMA0``, ``/dev/ttyUSB0``, a pty). None: no port, messages
+        are only counted (and logged).
+    baud : int
+        Baud rate; also sets the message rate when ``message_rate_hz`` is None.
+    autopilot : {"ardupilot", "px4", "inav", "both"}
+        Which controller listens; selects protocol and message set.
+    protocol : {None, "mavlink", "msp"}
+        None derives it from ``autopilot`` (inav → msp, others → mavlink). ``"mavlink"`` given
+        explicitly sends both flow messages (unless the autopilot is "ardupilot" or "px4");
+        ``"msp"`` also serves Betaflight and ArduPilot's FLOW_TYPE=7.
+    focal_length_px : float
+        Focal length in pixels at the processed resolution.
+    mounting_rotation_deg : {0, 90, 180, 270}
+        Camera turned clockwise seen from above, see :mod:`firmware_py.angular`.
+    mounting_mirror : bool
+        Picture mirrored left-right.
+    sysid, compid : int
+        MAVLink system and component id of the appliance.
+    sensor_id : int
+        ``sensor_id`` field of the flow messages.
+    message_rate_hz : float or None
+        Flow messages per second; None chooses the highest rate keeping the line ≤ 60 % busy,
+        capped at 100 Hz (MAVLink) or 50 Hz (MSP). Never more than one message per frame.
+    heartbeat_rate_hz : float
+        MAVLink HEARTBEAT rate, Hz (also while the camera is blind).
+    ground_distance_m : float or None
+        Fixed known distance to the ground, m; None sends -1 (unknown).
+    message_log : str or None
+        ``*.csv`` or ``*.jsonl`` path of a log of every message written, or None.
+    extra_values : bool
+        Reserved for NAMED_VALUE_FLOAT diagnostics (issue 6); accepted, not used yet.
+    msp_counts_per_degree : float
+        MSP motion counts per degree of angular flow; must equal INAV's ``opflow_scale``
+        (default 10.5) so INAV's rates come out in the right scale.
+    """
+
+    port: str | None = None
+    baud: int = 115200
+    autopilot: str = "ardupilot"
+    protocol: str | None = None
+    focal_length_px: float = 400.0
+    mounting_rotation_deg: int = 0
+    mounting_mirror: bool = False
+    sysid: int = 1
+    compid: int = 158
+    sensor_id: int = 0
+    message_rate_hz: float | None = None
+    heartbeat_rate_hz: float = 1.0
+    ground_distance_m: float | None = None
+    message_log: str | None = None
+    extra_values: bool = False
+    msp_counts_per_degree: float = 10.5
+
+    def __post_init__(self):
+        if self.autopilot not in AUTOPILOTS:
+            raise ValueError(f"autopilot must be one of {AUTOPILOTS}, got {self.autopilot!r}")
+        if self.protocol is not None and self.protocol not in PROTOCOLS:
+            raise ValueError(f"protocol must be None or one of {PROTOCOLS}, got {self.protocol!r}")
+        if int(self.mounting_rotation_deg) % 360 not in VALID_ROTATIONS_DEG:
+            raise ValueError(f"mounting_rotation_deg must be one of {VALID_ROTATIONS_DEG}, "
+                             f"got {self.mounting_rotation_deg}")
+        if not (self.focal_length_px and self.focal_length_px > 0 and math.isfinite(self.focal_length_px)):
+            raise ValueError(f"focal_length_px must be positive, got {self.focal_length_px}")
+        if int(self.baud) <= 0:
+            raise ValueError(f"baud must be positive, got {self.baud}")
+        if self.message_rate_hz is not None and not self.message_rate_hz > 0:
+            raise ValueError(f"message_rate_hz must be positive or None, got {self.message_rate_hz}")
+        if not self.heartbeat_rate_hz > 0:
+            raise ValueError(f"heartbeat_rate_hz must be positive, got {self.heartbeat_rate_hz}")
+        if not 0 <= int(self.sensor_id) <= 255:
+            raise ValueError(f"sensor_id must be 0..255, got {self.sensor_id}")
+        for name in ("sysid", "compid"):
+            if not 1 <= int(getattr(self, name)) <= 255:
+                raise ValueError(f"{name} must be 1..255, got {getattr(self, name)}")
+        if not self.msp_counts_per_degree > 0:
+            raise ValueError(f"msp_counts_per_degree must be positive, got {self.msp_counts_per_degree}")
+
+
+def resolve_protocol(config: LinkConfig) -> str:
+    """Wire protocol for a config: the explicit one, else msp for INAV, mavlink otherwise."""
+    if config.protocol is not None:
+        return config.protocol
+    return "msp" if config.autopilot == "inav" else "mavlink"
+
+
+def choose_message_rate(*, baud: int, bytes_per_message: int, cap_hz: float,
+                        reserved_bytes_per_s: float = 0.0, busy_fraction: float = BUSY_FRACTION) -> float:
+    """Highest whole message rate that keeps the line under ``busy_fraction``.
+
+    Parameters
+    ----------
+    baud : int
+        Line rate, bit/s; 8N1 framing makes that ``baud / 10`` bytes/s.
+    bytes_per_message : int
+        Bytes on the wire for one report (all messages of the set).
+    cap_hz : float
+        Upper limit, Hz.
+    reserved_bytes_per_s : float
+        Other traffic (heartbeats), bytes/s.
+    busy_fraction : float
+        Share of the line the link may occupy.
+
+    Returns
+    -------
+    float
+        Message rate, Hz, at least 1.
+    """
+    budget = baud / 10.0 * busy_fraction - reserved_bytes_per_s
+    return float(max(1, min(int(cap_hz), math.floor(budget / bytes_per_message))))
+
+
+class FlowLink:
+    """Base class of the protocol links (see the module docstring for the timing model).
+
+    Subclasses set :attr:`protocol`, implement :meth:`_encode_flow` and may override
+    :meth:`_bytes_per_report`, :meth:`_default_rate_cap`, :meth:`_handle_rx`,
+    :meth:`_periodic`, :meth:`_on_open`.
+    """
+
+    protocol = "?"
+    #: Start the blind keep-alive after this long without a submitted frame, s.
+    blind_after_s = 0.3
+
+    def __init__(self, config: LinkConfig):
+        self.config = config
+        self.stats: dict = {"protocol": self.protocol, "port": config.port, "messages_sent": {},
+                            "flow_reports": 0, "blind_reports": 0, "integration_restarts": 0,
+                            "internal_errors": 0, "frames": 0}
+        self.integrator = FlowIntegrator(focal_length_px=config.focal_length_px,
+                                         rotation_deg=config.mounting_rotation_deg,
+                                         mirror=config.mounting_mirror)
+        self.message_rate_hz = self._choose_rate()
+        self.period_us = 1e6 / self.message_rate_hz
+        self.stats["message_rate_hz"] = self.message_rate_hz
+        self.message_log = None
+        if config.message_log:
+            try:
+                self.message_log = MessageLog(config.message_log)
+            except OSError as exc:
+                log.warning("message log %s cannot be created: %s; not logging", config.message_log, exc)
+        self._last_submit_host_us: int | None = None
+        self._last_flow_host_us: int | None = None
+        self._last_report_end_us: int | None = None
+        self._last_restarts = 0
+        self._internal_error_logged = False
+        if config.extra_values:
+            log.debug("extra_values requested: not implemented by this version of the link")
+        if config.port is None:
+            log.warning("no serial port configured: %s messages are counted but not sent", self.protocol)
+        self.transport = SerialTransport(port=config.port, baud=config.baud, stats=self.stats,
+                                         max_queue_messages=self._queue_capacity(),
+                                         on_open=self._on_open, on_sent=self._on_sent)
+        self.transport.try_open(host_now_us())
+        self.transport.pump()
+
+    # -- configuration hooks ---------------------------------------------------------
+    def _bytes_per_report(self) -> int:
+        raise NotImplementedError
+
+    def _default_rate_cap(self) -> float:
+        return 100.0
+
+    def _reserved_bytes_per_s(self) -> float:
+        return 0.0
+
+    def _queue_capacity(self) -> int:
+        # About 0.1 s of reports (plus room for a heartbeat) before the oldest goes.
+        return max(4, int(math.ceil(self.message_rate_hz * 0.1)) * self._messages_per_report() + 2)
+
+    def _messages_per_report(self) -> int:
+        return 1
+
+    def _choose_rate(self) -> float:
+        cfg = self.config
+        budget_rate = choose_message_rate(baud=cfg.baud, bytes_per_message=self._bytes_per_report(),
+                                          cap_hz=self._default_rate_cap(),
+                                          reserved_bytes_per_s=self._reserved_bytes_per_s())
+        if cfg.message_rate_hz is None:
+            rate = budget_rate
+        else:
+            rate = float(cfg.message_rate_hz)
+            load = (rate * self._bytes_per_report() + self._reserved_bytes_per_s()) / (cfg.baud / 10.0)
+            if load > BUSY_FRACTION:
+                log.warning("%s on %s: %.0f Hz needs %.0f %% of %d baud (budget %.0f %%): expect drops; "
+                            "%.0f Hz would fit", self.protocol, cfg.port, rate, 100 * load, cfg.baud,
+                            100 * BUSY_FRACTION, budget_rate)
+        if rate < 10:
+            log.warning("%s on %s: only %.0f flow messages/s fit in %d baud; raise the baud rate",
+                        self.protocol, cfg.port, rate, cfg.baud)
+        log.info("%s on %s: %.0f flow messages/s (%d bytes each) at %d baud", self.protocol, cfg.port,
+                 rate, self._bytes_per_report(), cfg.baud)
+        return rate
+
+    # -- public interface ------------------------------------------------------------
+    def submit(self, sample: FlowSample) -> None:
+        """Add one processed frame; sends a report when the interval is complete.
+
+        Never blocks, never raises.
+        """
+        try:
+            self._submit(sample)
+        except Exception:  # noqa: BLE001 - the frame loop must survive any link bug
+            self._internal_error("submit")
+
+    def service(self, now_host_us: int) -> None:
+        """Host-time housekeeping: reopen, read, heartbeats, blind keep-alive, flush.
+
+        Call it every frame and while blind. Never blocks, never raises.
+        """
+        try:
+            now = int(now_host_us)
+            self.transport.service(now)
+            data = self.transport.read_available(now_us=now)
+            if data:
+                self._handle_rx(data, now)
+            self._periodic(now)
+            self._blind_keepalive(now)
+            self.transport.pump(now)
+        except Exception:  # noqa: BLE001
+            self._internal_error("service")
+
+    def latencies_us(self) -> list[int]:
+        """Capture-to-write latencies (µs) of flow messages written since the previous call.
+
+        Each value is the host time the message's last byte was handed to the OS minus the
+        ``capture_host_us`` of the newest frame in it. Draining: every value is returned once.
+        """
+        values = list(self.transport.latencies_us)
+        self.transport.latencies_us.clear()
+        return values
+
+    def close(self) -> None:
+        """Flush what is queued (best effort, ≤ 0.2 s) and close the port and the log."""
+        try:
+            self.transport.close()
+        except Exception:  # noqa: BLE001
+            self._internal_error("close")
+        if self.message_log is not None:
+            self.message_log.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # -- internals -------------------------------------------------------------------
+    def _internal_error(self, where: str) -> None:
+        self.stats["internal_errors"] += 1
+        if not self._internal_error_logged:
+            self._internal_error_logged = True
+            log.exception("%s link on %s: unexpected error in %s (continuing)", self.protocol,
+                          self.config.port, where)
+
+    def _submit(self, sample: FlowSample) -> None:
+        self.stats["frames"] += 1
+        self._last_submit_host_us = int(sample.capture_host_us)
+        integ = self.integrator
+        integ.add_frame(timestamp_us=sample.timestamp_us, flow_x_px=sample.flow_x,
+                        flow_y_px=sample.flow_y, quality=sample.quality)
+        if integ.restart_count != self._last_restarts:
+            self._last_restarts = integ.restart_count
+            self.stats["integration_restarts"] = integ.restart_count
+            self._reset_carry()
+        # Emit on frame boundaries: a quarter-frame tolerance keeps e.g. 50 Hz at 100 fps
+        # from slipping to every third frame on jitter.
+        tolerance = 0.25 * (integ.nominal_interval_us or 0.0)
+        if integ.elapsed_us > 0 and integ.elapsed_us >= self.period_us - tolerance:
+            interval = integ.take()
+            self._emit(interval, capture_host_us=int(sample.capture_host_us))
+        self.transport.pump()
+
+    def _blind_keepalive(self, now: int) -> None:
+        if self._last_submit_host_us is not None and now - self._last_submit_host_us < self.blind_after_s * 1e6:
+            return
+        if self._last_flow_host_us is not None and now - self._last_flow_host_us < 1e6 / BLIND_RATE_HZ:
+            return
+        if self._last_flow_host_us is None:
+            span = int(1e6 / BLIND_RATE_HZ)
+        else:
+            span = min(now - self._last_flow_host_us, self.integrator.max_blind_interval_us)
+        if self._last_report_end_us is None:
+            end = now  # nothing reported yet: the host clock is all there is
+        else:
+            # Continue the capture clock from the previous report by the host time since.
+            end = self._last_report_end_us + span
+        interval = FlowInterval(start_us=end - span, end_us=end, integrated_x=0.0, integrated_y=0.0,
+                                sum_u_px=0.0, sum_v_px=0.0, quality=0, frame_count=0)
+        self.integrator.restart(None)  # frames resuming start a fresh interval
+        self._reset_carry()
+        self.stats["blind_reports"] += 1
+        self._emit(interval, capture_host_us=None, now=now)
+
+    def _emit(self, interval: FlowInterval, *, capture_host_us: int | None, now: int | None = None) -> None:
+        now = host_now_us() if now is None else now
+        self._last_flow_host_us = now
+        self._last_report_end_us = interval.end_us
+        self.stats["flow_reports"] += 1
+        if interval.quality == 0:
+            self._reset_carry()
+        for name, data, fields in self._encode_flow(interval):
+            fields.setdefault("frames", interval.frame_count)
+            self.transport.enqueue(OutgoingMessage(name=name, data=data, queued_host_us=now,
+                                                   capture_host_us=capture_host_us, fields=fields))
+        self.transport.pump(now)
+
+    def _enqueue_other(self, name: str, data: bytes, fields: dict, now: int, *, first: bool = False) -> None:
+        self.transport.enqueue(OutgoingMessage(name=name, data=data, queued_host_us=now, fields=fields),
+                               first=first)
+
+    def _on_sent(self, message: OutgoingMessage, host_us: int, latency_us: int | None) -> None:
+        if self.message_log is not None:
+            self.message_log.write(host_us=host_us, message=message.name, size=len(message.data),
+                                   latency_us=latency_us, fields=message.fields)
+
+    # -- protocol hooks --------------------------------------------------------------
+    def _encode_flow(self, interval: FlowInterval) -> list[tuple[str, bytes, dict]]:
+        """Encode one report: ``[(message_name, frame_bytes, fields_for_log), ...]``."""
+        raise NotImplementedError
+
+    def _reset_carry(self) -> None:
+        """Forget fractional remainders (after an integration restart or a blind interval)."""
+
+    def _handle_rx(self, data: bytes, now: int) -> None:
+        """Bytes from the autopilot."""
+
+    def _periodic(self, now: int) -> None:
+        """Host-time periodic messages (heartbeats)."""
+
+    def _on_open(self, now: int) -> None:
+        """The port was (re)opened."""
+
+
+def carry_round(value: float, remainder: float) -> tuple[int, float]:
+    """Round ``value + remainder`` to an integer and return the new remainder.
+
+    Integer wire units (MSP counts, MAVLink deci-pixels) would otherwise turn a slow, steady
+    flow into a stream of zeros.
+    """
+    total = value + remainder
+    whole = int(round(total))
+    return whole, total - whole

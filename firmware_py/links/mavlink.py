@@ -1,0 +1,218 @@
+"""MAVLink 2 link for ArduPilot (OPTICAL_FLOW, id 100) and PX4 (OPTICAL_FLOW_RAD, id 106).
+
+Encoding and parsing use pymavlink's generated MAVLink 2 ``common`` dialect.
+
+Per report (one integrated interval, see :mod:`firmware_py.angular`):
+
+OPTICAL_FLOW (ArduPilot, FLOW_TYPE=5)
+    ``flow_rate_x/y`` = integrated angle / integration time, rad/s (firmware with PR #30663);
+    ``flow_x/y`` = 10 × Σu' / Σv' deci-pixels since the previous message, in the *same* axes
+    (older ArduPilot integrates these), with the fractional remainder carried;
+    ``flow_comp_m_x/y`` = 0 (ArduPilot ignores them); ``ground_distance`` = configured range
+    or -1; ``time_usec`` = capture timestamp of the newest frame; ``quality``; ``sensor_id``.
+OPTICAL_FLOW_RAD (PX4)
+    ``integration_time_us`` = capture-timestamp span of the interval; ``integrated_x/y`` rad;
+    gyro fields NaN (no IMU: PX4 integrates its own gyro over the same interval);
+    ``distance`` = configured range or -1; ``temperature`` 0; ``time_delta_distance_us`` 0.
+HEARTBEAT
+    ``MAV_TYPE_ONBOARD_CONTROLLER``, ``MAV_AUTOPILOT_INVALID``, ``MAV_STATE_ACTIVE``, once on
+    every (re)open, then at ``heartbeat_rate_hz``, also while the camera is blind.
+
+Incoming bytes are parsed without blocking (robust mode: garbage and bad CRCs are counted,
+never raised); the first HEARTBEAT of each other system is logged with its type and id.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+from pymavlink.dialects.v20 import common as mavlink2
+
+from ..angular import FlowInterval
+from .base import FlowLink, LinkConfig, carry_round
+
+__all__ = ["MavlinkLink", "new_encoder", "pack", "MESSAGE_SETS", "WIRE_BYTES",
+           "HEARTBEAT_TYPE", "encode_heartbeat"]
+
+log = logging.getLogger(__name__)
+
+#: Bytes on the wire with every field non-zero: 10 header + payload + 2 CRC (unsigned).
+WIRE_BYTES = {"HEARTBEAT": 21, "OPTICAL_FLOW": 46, "OPTICAL_FLOW_RAD": 56}
+
+#: Flow messages per autopilot.
+MESSAGE_SETS = {
+    "ardupilot": ("OPTICAL_FLOW",),
+    "px4": ("OPTICAL_FLOW_RAD",),
+    "both": ("OPTICAL_FLOW", "OPTICAL_FLOW_RAD"),
+}
+
+HEARTBEAT_TYPE = mavlink2.MAV_TYPE_ONBOARD_CONTROLLER  # 18: no MAV_TYPE for a flow sensor
+
+_INT16_MAX = 32767
+
+
+def new_encoder(*, sysid: int, compid: int) -> mavlink2.MAVLink:
+    """A pymavlink MAVLink 2 encoder with its own sequence counter (no file attached)."""
+    return mavlink2.MAVLink(None, srcSystem=int(sysid), srcComponent=int(compid))
+
+
+def pack(encoder: mavlink2.MAVLink, message) -> bytes:
+    """Frame ``message`` with the encoder's ids and sequence number, then advance it."""
+    data = bytes(message.pack(encoder))
+    encoder.seq = (encoder.seq + 1) % 256
+    return data
+
+
+def encode_heartbeat(encoder: mavlink2.MAVLink) -> bytes:
+    """HEARTBEAT of a peripheral (``MAV_AUTOPILOT_INVALID``, state ACTIVE)."""
+    return pack(encoder, encoder.heartbeat_encode(
+        type=HEARTBEAT_TYPE, autopilot=mavlink2.MAV_AUTOPILOT_INVALID, base_mode=0, custom_mode=0,
+        system_status=mavlink2.MAV_STATE_ACTIVE))
+
+
+def _clamp_i16(value: int) -> int:
+    return max(-_INT16_MAX, min(_INT16_MAX, int(value)))
+
+
+class MavlinkLink(FlowLink):
+    """MAVLink 2 flow sensor (see module docstring).
+
+    Parameters
+    ----------
+    config : LinkConfig
+        ``autopilot`` (or an explicit ``protocol="mavlink"``) selects the message set.
+    """
+
+    protocol = "mavlink"
+
+    def __init__(self, config: LinkConfig):
+        if config.protocol == "mavlink" and config.autopilot not in ("ardupilot", "px4"):
+            self.message_set = MESSAGE_SETS["both"]
+        elif config.protocol == "mavlink" and config.autopilot in ("ardupilot", "px4"):
+            self.message_set = MESSAGE_SETS[config.autopilot]
+        else:
+            self.message_set = MESSAGE_SETS.get(config.autopilot, MESSAGE_SETS["both"])
+        self.encoder = new_encoder(sysid=config.sysid, compid=config.compid)
+        self._rx = self._new_parser()
+        self._dpix_carry = [0.0, 0.0]
+        self._next_heartbeat_us: int | None = None
+        self._heartbeat_period_us = int(1e6 / config.heartbeat_rate_hz)
+        self._seen_systems: set[tuple[int, int]] = set()
+        self._distance = (float(config.ground_distance_m)
+                          if config.ground_distance_m is not None and config.ground_distance_m >= 0 else -1.0)
+        super().__init__(config)
+        self.stats.update({"message_set": "+".join(self.message_set), "rx_messages": {},
+                           "rx_garbage_bytes": 0, "rx_heartbeat": None})
+
+    @staticmethod
+    def _new_parser() -> mavlink2.MAVLink:
+        parser = mavlink2.MAVLink(None)
+        parser.robust_parsing = True  # bad CRCs / garbage come back as MAVLink_bad_data
+        return parser
+
+    # -- rate ------------------------------------------------------------------------
+    def _bytes_per_report(self) -> int:
+        return sum(WIRE_BYTES[name] for name in self.message_set)
+
+    def _reserved_bytes_per_s(self) -> float:
+        return WIRE_BYTES["HEARTBEAT"] * self.config.heartbeat_rate_hz
+
+    def _default_rate_cap(self) -> float:
+        return 100.0
+
+    def _messages_per_report(self) -> int:
+        return len(self.message_set)
+
+    # -- output ----------------------------------------------------------------------
+    def _reset_carry(self) -> None:
+        self._dpix_carry = [0.0, 0.0]
+
+    def _encode_flow(self, interval: FlowInterval) -> list[tuple[str, bytes, dict]]:
+        cfg = self.config
+        out = []
+        time_usec = max(0, int(interval.end_us))
+        quality = int(interval.quality)
+        for name in self.message_set:
+            if name == "OPTICAL_FLOW":
+                flow_x, self._dpix_carry[0] = carry_round(10.0 * interval.sum_u_px, self._dpix_carry[0])
+                flow_y, self._dpix_carry[1] = carry_round(10.0 * interval.sum_v_px, self._dpix_carry[1])
+                flow_x, flow_y = _clamp_i16(flow_x), _clamp_i16(flow_y)
+                msg = self.encoder.optical_flow_encode(
+                    time_usec=time_usec, sensor_id=cfg.sensor_id, flow_x=flow_x, flow_y=flow_y,
+                    flow_comp_m_x=0.0, flow_comp_m_y=0.0, quality=quality,
+                    ground_distance=self._distance, flow_rate_x=interval.rate_x, flow_rate_y=interval.rate_y)
+                log_fields = {"time_usec": time_usec, "flow_x": flow_x, "flow_y": flow_y,
+                              "flow_rate_x": interval.rate_x, "flow_rate_y": interval.rate_y,
+                              "quality": quality, "distance": self._distance, "sensor_id": cfg.sensor_id,
+                              "integration_time_us": interval.integration_time_us}
+            else:
+                msg = self.encoder.optical_flow_rad_encode(
+                    time_usec=time_usec, sensor_id=cfg.sensor_id,
+                    integration_time_us=max(0, int(interval.integration_time_us)),
+                    integrated_x=interval.integrated_x, integrated_y=interval.integrated_y,
+                    integrated_xgyro=math.nan, integrated_ygyro=math.nan, integrated_zgyro=math.nan,
+                    temperature=0, quality=quality, time_delta_distance_us=0, distance=self._distance)
+                log_fields = {"time_usec": time_usec, "integration_time_us": interval.integration_time_us,
+                              "integrated_x": interval.integrated_x, "integrated_y": interval.integrated_y,
+                              "quality": quality, "distance": self._distance, "sensor_id": cfg.sensor_id}
+            data = pack(self.encoder, msg)
+            log_fields["seq"] = data[4]
+            out.append((name, data, log_fields))
+        return out
+
+    def _send_heartbeat(self, now: int, *, first: bool = False) -> None:
+        data = encode_heartbeat(self.encoder)
+        self._enqueue_other("HEARTBEAT", data, {"seq": data[4]}, now, first=first)
+
+    def _on_open(self, now: int) -> None:
+        # A fresh parser: bytes from the previous connection must not glue onto new ones.
+        self._rx = self._new_parser()
+        self._send_heartbeat(now, first=True)  # before any flow queued while the port was away
+        self._next_heartbeat_us = now + self._heartbeat_period_us
+
+    def _periodic(self, now: int) -> None:
+        if not self.transport.is_open:
+            return
+        if self._next_heartbeat_us is None:
+            self._next_heartbeat_us = now
+        if now >= self._next_heartbeat_us:
+            self._send_heartbeat(now)
+            self._next_heartbeat_us += self._heartbeat_period_us
+            if self._next_heartbeat_us <= now:  # after a stall: no burst of catch-up heartbeats
+                self._next_heartbeat_us = now + self._heartbeat_period_us
+
+    # -- input -----------------------------------------------------------------------
+    def _handle_rx(self, data: bytes, now: int) -> None:
+        try:
+            messages = self._rx.parse_buffer(data) or []
+        except Exception as exc:  # noqa: BLE001 - pymavlink raises on some malformed input
+            self.stats["rx_garbage_bytes"] += len(data)
+            log.debug("MAVLink from %s: parser error %s; parser reset", self.config.port, exc)
+            self._rx = self._new_parser()
+            return
+        rx = self.stats["rx_messages"]
+        for msg in messages:
+            name = msg.get_type()
+            if name == "BAD_DATA":
+                self.stats["rx_garbage_bytes"] += len(msg.get_msgbuf() or b"")
+                continue
+            rx[name] = rx.get(name, 0) + 1
+            if name == "HEARTBEAT":
+                self._note_heartbeat(msg)
+
+    def _note_heartbeat(self, msg) -> None:
+        key = (msg.get_srcSystem(), msg.get_srcComponent())
+        if key == (self.config.sysid, self.config.compid):
+            return  # our own heartbeat looped back
+        info = {"sysid": key[0], "compid": key[1], "type": int(msg.type), "autopilot": int(msg.autopilot),
+                "system_status": int(msg.system_status)}
+        if msg.autopilot != mavlink2.MAV_AUTOPILOT_INVALID or self.stats["rx_heartbeat"] is None:
+            self.stats["rx_heartbeat"] = info
+        if key not in self._seen_systems:
+            self._seen_systems.add(key)
+            type_name = mavlink2.enums["MAV_TYPE"].get(int(msg.type))
+            ap_name = mavlink2.enums["MAV_AUTOPILOT"].get(int(msg.autopilot))
+            log.info("MAVLink on %s: HEARTBEAT from system %d component %d: %s, %s", self.config.port,
+                     key[0], key[1], type_name.name if type_name else msg.type,
+                     ap_name.name if ap_name else msg.autopilot)

@@ -1,0 +1,329 @@
+"""Serial transport that never blocks the frame loop.
+
+* The port is opened with pyserial (``timeout=0``), writes go straight to the file
+  descriptor with ``os.write`` on the non-blocking descriptor: pyserial's own ``write`` with
+  ``write_timeout=0`` spins on ``EAGAIN`` when the kernel buffer is full.
+* Messages wait in a small bounded queue; a full queue drops the **oldest** whole message
+  (counted), and a message older than ``max_age_s`` is dropped instead of sent — the link
+  never lags behind real time. A message already partly written is always finished, so the
+  wire never carries a torn frame.
+* The kernel's tty buffer can hold seconds of data at low baud rates (4 kB at 57600 baud is
+  0.7 s). Before each write the driver's output queue (``TIOCOUTQ``, pyserial's
+  ``out_waiting``) is checked, and nothing more is handed over while it holds more than
+  ``max_kernel_lag_s`` worth of bytes; our own queue then ages out instead.
+* A vanished port (USB adapter unplugged, pty closed) closes the descriptor; :meth:`service`
+  reopens it with exponential back-off. Every log line and error text names the port.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import os
+import select
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+__all__ = ["SerialTransport", "OutgoingMessage", "host_now_us"]
+
+log = logging.getLogger(__name__)
+
+
+def host_now_us() -> int:
+    """Host monotonic clock, µs (the clock of ``FlowSample.capture_host_us``)."""
+    return time.monotonic_ns() // 1000
+
+
+@dataclass(slots=True)
+class OutgoingMessage:
+    """One encoded message waiting for the port.
+
+    Attributes
+    ----------
+    name : str
+        Message name for counters and the log (``OPTICAL_FLOW``, ``HEARTBEAT``, ...).
+    data : bytes
+        The complete frame.
+    queued_host_us : int
+        Host monotonic time when it was queued, µs (set by :meth:`SerialTransport.enqueue`).
+    capture_host_us : int or None
+        Host time of the frame capture it reports, µs; None for messages without one.
+    fields : dict
+        Decoded values, for the message log.
+    """
+
+    name: str
+    data: bytes
+    queued_host_us: int = 0
+    capture_host_us: int | None = None
+    fields: dict = field(default_factory=dict)
+
+
+class SerialTransport:
+    """Non-blocking, self-healing serial port writer/reader.
+
+    Parameters
+    ----------
+    port : str or None
+        Device path; None disables the port (messages are counted as dropped).
+    baud : int
+        Baud rate.
+    stats : dict
+        Counter dict shared with the link (updated in place).
+    max_queue_messages : int
+        Messages waiting in user space before the oldest is dropped.
+    max_age_s : float
+        A queued message older than this is dropped instead of written, s.
+    max_kernel_lag_s : float
+        Stop handing bytes to the kernel while its output queue holds more than this much
+        transmit time, s.
+    reopen_initial_s, reopen_max_s : float
+        Back-off between reopen attempts: starts at the first, doubles up to the second, s.
+    on_open : callable, optional
+        Called after every successful (re)open, e.g. to queue a heartbeat.
+    on_sent : callable, optional
+        ``on_sent(message, host_us, latency_us)`` after a message was fully handed to the OS.
+    """
+
+    def __init__(self, *, port: str | None, baud: int, stats: dict, max_queue_messages: int = 16,
+                 max_age_s: float = 0.25, max_kernel_lag_s: float = 0.05,
+                 reopen_initial_s: float = 0.5, reopen_max_s: float = 8.0,
+                 on_open=None, on_sent=None):
+        self.port = port
+        self.baud = int(baud)
+        self.stats = stats
+        self.max_queue_messages = max(1, int(max_queue_messages))
+        self.max_age_us = int(max_age_s * 1e6)
+        self.kernel_limit_bytes = max(64, int(self.baud / 10 * max_kernel_lag_s))
+        self.reopen_initial_us = int(reopen_initial_s * 1e6)
+        self.reopen_max_us = int(reopen_max_s * 1e6)
+        self.on_open = on_open
+        self.on_sent = on_sent
+        self.latencies_us: deque[int] = deque(maxlen=4096)
+        self._serial = None
+        self._fd: int | None = None
+        self._queue: deque[OutgoingMessage] = deque()
+        self._current: OutgoingMessage | None = None
+        self._current_offset = 0
+        self._next_open_us = 0
+        self._backoff_us = self.reopen_initial_us
+        self._ever_opened = False
+        self._failures_logged = 0
+        self._out_waiting_works = True
+        for key in ("bytes_written", "dropped_messages", "stale_messages", "reopen_count", "open_failures",
+                    "write_errors", "read_errors", "rx_bytes"):
+            stats.setdefault(key, 0)
+        stats.setdefault("messages_sent", {})
+        stats.setdefault("dropped_by_type", {})
+        stats.setdefault("port_open", False)
+        stats.setdefault("last_error", None)
+
+    # -- open / close ----------------------------------------------------------------
+    @property
+    def is_open(self) -> bool:
+        """True while the port is open."""
+        return self._fd is not None
+
+    def try_open(self, now_us: int | None = None) -> bool:
+        """Open the port now if it is closed and the back-off allows (never raises)."""
+        if self._fd is not None or self.port is None:
+            return self._fd is not None
+        now_us = host_now_us() if now_us is None else now_us
+        if now_us < self._next_open_us:
+            return False
+        import serial  # pyserial; imported late so the module loads without it for docs
+
+        try:
+            ser = serial.Serial(self.port, self.baud, timeout=0, write_timeout=0)
+            fd = ser.fileno()
+            os.set_blocking(fd, False)
+        except (OSError, ValueError, serial.SerialException) as exc:
+            self.stats["open_failures"] += 1
+            self._fail(f"cannot open serial port {self.port} at {self.baud} baud: {exc}",
+                       first=self._failures_logged == 0)
+            self._failures_logged += 1
+            self._next_open_us = now_us + self._backoff_us
+            self._backoff_us = min(self.reopen_max_us, self._backoff_us * 2)
+            return False
+        self._serial, self._fd = ser, fd
+        self._backoff_us = self.reopen_initial_us
+        self._failures_logged = 0
+        self._out_waiting_works = True
+        self.stats["port_open"] = True
+        if self._ever_opened:
+            self.stats["reopen_count"] += 1
+            log.warning("serial port %s reopened (%d reopen(s) so far)", self.port, self.stats["reopen_count"])
+        else:
+            log.info("serial port %s open at %d baud", self.port, self.baud)
+        self._ever_opened = True
+        if self.on_open is not None:
+            self.on_open(now_us)
+        return True
+
+    def _fail(self, text: str, *, first: bool = True) -> None:
+        self.stats["last_error"] = text
+        # The first failure of a series is a warning, the retries are debug noise.
+        (log.warning if first else log.debug)("%s", text)
+
+    def _lost(self, what: str, exc: BaseException, now_us: int | None) -> None:
+        """The port failed: close it and schedule a reopen."""
+        now_us = host_now_us() if now_us is None else now_us
+        self._fail(f"serial port {self.port}: {what} failed ({exc}); closing, will reopen")
+        self._close_fd()
+        self._next_open_us = now_us + self._backoff_us
+        # The partly written message is lost with the port: the peer's parser resynchronises.
+        if self._current is not None:
+            self._count_drop(self._current)
+            self._current = None
+            self._current_offset = 0
+
+    def _close_fd(self) -> None:
+        ser, self._serial, self._fd = self._serial, None, None
+        self.stats["port_open"] = False
+        if ser is not None:
+            try:
+                ser.close()
+            except Exception as exc:  # noqa: BLE001 - a dead USB adapter can raise anything here
+                log.debug("serial port %s: close: %s", self.port, exc)
+
+    def close(self, *, flush_timeout_s: float = 0.2) -> None:
+        """Write what is queued (best effort, bounded time) and close the port."""
+        deadline = host_now_us() + int(flush_timeout_s * 1e6)
+        while self._fd is not None and (self._queue or self._current) and host_now_us() < deadline:
+            before = (len(self._queue), self._current_offset)
+            self.pump()
+            if (len(self._queue), self._current_offset) == before:
+                time.sleep(0.002)
+        self._close_fd()
+
+    # -- output ----------------------------------------------------------------------
+    def enqueue(self, message: OutgoingMessage, *, first: bool = False) -> None:
+        """Queue a message, dropping the oldest queued one when full (never blocks).
+
+        ``first`` puts it before everything queued (the greeting heartbeat after an open).
+        """
+        # Age is measured on the real monotonic clock whatever clock the caller uses.
+        message.queued_host_us = host_now_us()
+        while len(self._queue) >= self.max_queue_messages:
+            self._count_drop(self._queue.popleft())
+        if first:
+            self._queue.appendleft(message)
+        else:
+            self._queue.append(message)
+
+    def _count_drop(self, message: OutgoingMessage, *, stale: bool = False) -> None:
+        self.stats["dropped_messages"] += 1
+        if stale:
+            self.stats["stale_messages"] += 1
+        per = self.stats["dropped_by_type"]
+        per[message.name] = per.get(message.name, 0) + 1
+
+    def _kernel_backlog(self) -> int:
+        if not self._out_waiting_works or self._serial is None:
+            return 0
+        try:
+            return int(self._serial.out_waiting)
+        except Exception:  # noqa: BLE001 - some drivers do not implement TIOCOUTQ
+            self._out_waiting_works = False
+            return 0
+
+    def pump(self, now_us: int | None = None) -> None:
+        """Hand queued bytes to the OS as far as it accepts them without waiting."""
+        if self._fd is None:
+            # No port: keep only fresh messages so a reopen does not send stale data.
+            now_us = host_now_us()
+            while self._queue and now_us - self._queue[0].queued_host_us > self.max_age_us:
+                self._count_drop(self._queue.popleft(), stale=True)
+            return
+        while True:
+            if self._current is None:
+                if not self._queue:
+                    return
+                if self._kernel_backlog() > self.kernel_limit_bytes:
+                    return
+                now = host_now_us()
+                message = self._queue.popleft()
+                if now - message.queued_host_us > self.max_age_us:
+                    self._count_drop(message, stale=True)
+                    continue
+                self._current, self._current_offset = message, 0
+            message = self._current
+            try:
+                n = os.write(self._fd, memoryview(message.data)[self._current_offset:])
+            except BlockingIOError:
+                return
+            except InterruptedError:
+                continue
+            except OSError as exc:
+                self.stats["write_errors"] += 1
+                self._lost("write", exc, now_us)
+                return
+            self._current_offset += n
+            if self._current_offset < len(message.data):
+                return  # the kernel buffer is full; finish this message next time
+            done_us = host_now_us()
+            self._current, self._current_offset = None, 0
+            self.stats["bytes_written"] += len(message.data)
+            sent = self.stats["messages_sent"]
+            sent[message.name] = sent.get(message.name, 0) + 1
+            latency = None
+            if message.capture_host_us is not None:
+                latency = done_us - message.capture_host_us
+                self.latencies_us.append(latency)
+            if self.on_sent is not None:
+                self.on_sent(message, done_us, latency)
+
+    @property
+    def queued_messages(self) -> int:
+        """Messages waiting in user space (including a partly written one)."""
+        return len(self._queue) + (self._current is not None)
+
+    # -- input -----------------------------------------------------------------------
+    def read_available(self, *, max_bytes: int = 65536, now_us: int | None = None) -> bytes:
+        """Return whatever the peer sent, without waiting (b'' if nothing or no port)."""
+        if self._fd is None:
+            return b""
+        chunks = []
+        total = 0
+        while total < max_bytes:
+            try:
+                chunk = os.read(self._fd, min(4096, max_bytes - total))
+            except BlockingIOError:
+                break
+            except InterruptedError:
+                continue
+            except OSError as exc:
+                if exc.errno == errno.EAGAIN:
+                    break
+                self.stats["read_errors"] += 1
+                self._lost("read", exc, now_us)
+                break
+            if not chunk:
+                # pyserial's timeout=0 makes an idle tty read return b''; only a hang-up
+                # reported by poll() means the device is gone.
+                if self._hung_up():
+                    self.stats["read_errors"] += 1
+                    self._lost("read", OSError(errno.EIO, "device hung up"), now_us)
+                break
+            chunks.append(chunk)
+            total += len(chunk)
+        data = b"".join(chunks)
+        self.stats["rx_bytes"] += len(data)
+        return data
+
+    def _hung_up(self) -> bool:
+        poller = select.poll()
+        poller.register(self._fd, select.POLLIN | select.POLLHUP | select.POLLERR)
+        try:
+            events = poller.poll(0)
+        except OSError:
+            return True
+        return any(ev & (select.POLLHUP | select.POLLERR | select.POLLNVAL) for _, ev in events)
+
+    # -- housekeeping ----------------------------------------------------------------
+    def service(self, now_us: int) -> None:
+        """Reopen if needed and push queued bytes (never blocks, never raises)."""
+        if self._fd is None:
+            self.try_open(now_us)
+        self.pump(now_us)

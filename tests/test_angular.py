@@ -1,0 +1,136 @@
+"""px/frame → rad, rad/s: conversion, mounting, measured intervals, gaps, quality."""
+
+import math
+
+import pytest
+
+from firmware_py.angular import FlowIntegrator, apply_mounting, focal_length_px_from_fov
+
+
+def test_focal_length_from_fov():
+    assert focal_length_px_from_fov(fov_deg=90.0, size_px=640) == pytest.approx(320.0)
+    # Halving the processed resolution halves the focal length in pixels.
+    full = focal_length_px_from_fov(fov_deg=62.2, size_px=640)
+    half = focal_length_px_from_fov(fov_deg=62.2, size_px=320)
+    assert half == pytest.approx(full / 2)
+    with pytest.raises(ValueError):
+        focal_length_px_from_fov(fov_deg=180.0, size_px=640)
+
+
+@pytest.mark.parametrize("rotation, expected", [(0, (1.0, 2.0)), (90, (-2.0, 1.0)),
+                                                (180, (-1.0, -2.0)), (270, (2.0, -1.0))])
+def test_mounting_table(rotation, expected):
+    assert apply_mounting(1.0, 2.0, rotation_deg=rotation) == expected
+
+
+def test_mounting_physical_meaning():
+    # Camera turned 90° clockwise (image top to the vehicle's right): flying forward moves
+    # the ground towards the vehicle's rear = the image's right (+u). After mounting this must
+    # be the default camera's forward-flight flow (+v').
+    assert apply_mounting(2.0, 0.0, rotation_deg=90) == (0.0, 2.0)
+    # Mirror is undone first: a mirrored default camera sees rightward motion as +u.
+    assert apply_mounting(1.0, 0.0, mirror=True) == (-1.0, 0.0)
+    assert apply_mounting(1.0, 0.0, rotation_deg=90, mirror=True) == (0.0, -1.0)
+    with pytest.raises(ValueError):
+        apply_mounting(1.0, 0.0, rotation_deg=45)
+
+
+def feed(integ, stamps, flow=(0.0, 0.0), quality=200):
+    for t in stamps:
+        integ.add_frame(timestamp_us=t, flow_x_px=flow[0], flow_y_px=flow[1], quality=quality)
+
+
+def test_conversion_px_per_frame_to_rad():
+    f = 400.0
+    integ = FlowIntegrator(focal_length_px=f)
+    feed(integ, [0, 10_000, 20_000], flow=(-1.0, 2.0))
+    iv = integ.take()
+    assert iv.integration_time_us == 20_000
+    assert iv.integrated_x == pytest.approx(-2.0 / f)
+    assert iv.integrated_y == pytest.approx(4.0 / f)
+    # rate = px/frame * fps / f
+    assert iv.rate_y == pytest.approx(2.0 * 100 / f)
+    assert iv.rate_x == pytest.approx(-1.0 * 100 / f)
+    assert iv.quality == 200 and iv.frame_count == 2
+
+
+def test_rates_use_measured_intervals_not_nominal_fps():
+    integ = FlowIntegrator(focal_length_px=500.0)
+    # A "100 fps" camera that really delivers 8, 12, 9, 11 ms frames with 0.5 px/ms motion.
+    stamps = [0, 8_000, 20_000, 29_000, 40_000]
+    integ.add_frame(timestamp_us=0, flow_x_px=0, flow_y_px=0, quality=200)
+    for a, b in zip(stamps, stamps[1:]):
+        integ.add_frame(timestamp_us=b, flow_x_px=0.0, flow_y_px=0.5 * (b - a) / 1000, quality=200)
+    iv = integ.take()
+    assert iv.integration_time_us == 40_000
+    assert iv.rate_y == pytest.approx(0.5 * 1000 / 500.0)
+
+
+def test_dropped_frame_gives_no_spike():
+    f = 400.0
+    integ = FlowIntegrator(focal_length_px=f)
+    rates = []
+    t = 0
+    integ.add_frame(timestamp_us=t, flow_x_px=0, flow_y_px=0, quality=200)
+    for i in range(30):
+        step = 2 if i == 15 else 1  # one frame lost: the next reports two frames of motion
+        t += step * 10_000
+        integ.add_frame(timestamp_us=t, flow_x_px=0.0, flow_y_px=1.5 * step, quality=200)
+        rates.append(integ.take())
+    assert integ.restart_count == 0
+    values = [iv.rate_y for iv in rates]
+    assert max(values) == pytest.approx(min(values)) == pytest.approx(1.5 * 100 / f)
+    assert rates[15].integration_time_us == 20_000
+
+
+def test_gap_restarts_integration():
+    integ = FlowIntegrator(focal_length_px=400.0)
+    feed(integ, range(0, 100_000, 10_000), flow=(0.0, 1.0))
+    # A 2 s stall: the frame after it carries motion from across the gap.
+    integ.add_frame(timestamp_us=2_090_000, flow_x_px=0.0, flow_y_px=200.0, quality=200)
+    assert integ.restart_count == 1
+    feed(integ, [2_100_000, 2_110_000], flow=(0.0, 1.0))
+    iv = integ.take()
+    assert iv.integration_time_us == 20_000  # no huge integration time
+    assert iv.rate_y == pytest.approx(100 / 400.0)  # no spike
+    # 5 nominal intervals is the threshold at 100 fps.
+    assert integ.gap_threshold_us == pytest.approx(50_000, rel=0.05)
+
+
+def test_clock_going_backwards_restarts():
+    integ = FlowIntegrator(focal_length_px=400.0)
+    feed(integ, [0, 10_000, 20_000])
+    integ.add_frame(timestamp_us=5_000, flow_x_px=3.0, flow_y_px=3.0, quality=200)
+    assert integ.restart_count == 1
+    assert integ.take().integration_time_us == 0
+
+
+def test_quality_mean_and_blind_frames():
+    integ = FlowIntegrator(focal_length_px=400.0)
+    integ.add_frame(timestamp_us=0, flow_x_px=0, flow_y_px=0, quality=100)
+    integ.add_frame(timestamp_us=10_000, flow_x_px=0, flow_y_px=1, quality=100)
+    integ.add_frame(timestamp_us=20_000, flow_x_px=0, flow_y_px=1, quality=200)
+    assert integ.take().quality == 150
+    # One blind frame: time still advances, the interval is reported as quality 0.
+    integ.add_frame(timestamp_us=30_000, flow_x_px=0, flow_y_px=1, quality=200)
+    integ.add_frame(timestamp_us=40_000, flow_x_px=9, flow_y_px=9, quality=0)
+    iv = integ.take()
+    assert iv.quality == 0 and iv.integration_time_us == 20_000
+    assert iv.integrated_y == pytest.approx(1 / 400.0)  # the blind frame's garbage is not added
+    # NaN flow counts as blind.
+    integ.add_frame(timestamp_us=50_000, flow_x_px=math.nan, flow_y_px=0, quality=200)
+    assert integ.take().quality == 0
+
+
+def test_blind_keepalive_sample_extends_instead_of_restarting():
+    integ = FlowIntegrator(focal_length_px=400.0)
+    feed(integ, range(0, 200_000, 10_000), flow=(0.0, 1.0))
+    integ.take()
+    # The daemon's quality-0 sample 0.3 s later keeps the interval sequence continuous.
+    integ.add_frame(timestamp_us=490_000, flow_x_px=0, flow_y_px=0, quality=0)
+    assert integ.restart_count == 0
+    iv = integ.take()
+    assert iv.quality == 0 and iv.integration_time_us == 300_000
+    # ... but not beyond what ArduPilot accepts (< 0.5 s).
+    integ.add_frame(timestamp_us=1_490_000, flow_x_px=0, flow_y_px=0, quality=0)
+    assert integ.restart_count == 1

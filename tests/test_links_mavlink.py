@@ -1,0 +1,281 @@
+"""MAVLink 2 link over a real pty, checked with pymavlink's parser on the autopilot's end."""
+
+import math
+import os
+import sys
+
+import pytest
+from pymavlink.dialects.v20 import common as mavlink2
+
+sys.path.insert(0, os.path.dirname(__file__))
+from ptyutil import FrameFeeder, PtyPeer, host_us  # noqa: E402
+
+from firmware_py.links import FlowSample, LinkConfig, open_link  # noqa: E402
+from firmware_py.links.mavlink import MavlinkLink, encode_heartbeat, new_encoder, pack  # noqa: E402
+
+SPEC_HEARTBEAT = "fd09000000019e000000000000001208000403fb1d"
+SPEC_FLOW_RAD = ("fd2c000001019e6a000040420f0000000000204e00000ad7233c0ad7a3bc6f12833a6f1203bb6f12033a"
+                 "000000000000c03fc40900c8b3fd")
+F = 400.0
+FPS = 100.0
+
+
+def strict_parse(data: bytes):
+    """pymavlink, non-robust: a bad CRC or a torn frame raises."""
+    parser = mavlink2.MAVLink(None)
+    messages = parser.parse_buffer(data) or []
+    assert all(m.get_type() != "BAD_DATA" for m in messages)
+    return messages
+
+
+def of_type(messages, name):
+    return [m for m in messages if m.get_type() == name]
+
+
+@pytest.fixture
+def peer(tmp_path):
+    p = PtyPeer(tmp_path / "ttyFC")
+    yield p
+    p.close()
+
+
+def make_link(peer, **kw):
+    options = dict(port=peer.path, baud=115200, autopilot="ardupilot", focal_length_px=F)
+    options.update(kw)
+    return open_link(LinkConfig(**options))
+
+
+def test_spec_test_vectors_byte_exact():
+    enc = new_encoder(sysid=1, compid=158)
+    assert encode_heartbeat(enc).hex() == SPEC_HEARTBEAT
+    msg = enc.optical_flow_rad_encode(
+        time_usec=1_000_000, sensor_id=0, integration_time_us=20_000, integrated_x=0.01, integrated_y=-0.02,
+        integrated_xgyro=0.001, integrated_ygyro=-0.002, integrated_zgyro=0.0005, temperature=2500,
+        quality=200, time_delta_distance_us=0, distance=1.5)
+    assert pack(enc, msg).hex() == SPEC_FLOW_RAD
+
+
+def test_first_bytes_on_the_wire_are_the_spec_heartbeat(peer):
+    link = make_link(peer, autopilot="px4")
+    try:
+        assert isinstance(link, MavlinkLink)
+        data = peer.read()
+        assert data.hex() == SPEC_HEARTBEAT  # at start, before any frame
+    finally:
+        link.close()
+
+
+@pytest.mark.parametrize("autopilot, expected, absent", [
+    ("ardupilot", {"OPTICAL_FLOW"}, "OPTICAL_FLOW_RAD"),
+    ("px4", {"OPTICAL_FLOW_RAD"}, "OPTICAL_FLOW"),
+    ("both", {"OPTICAL_FLOW", "OPTICAL_FLOW_RAD"}, None),
+])
+@pytest.mark.parametrize("baud", [57600, 115200])
+def test_message_set_rate_and_byte_budget(peer, autopilot, expected, absent, baud):
+    link = make_link(peer, autopilot=autopilot, baud=baud)
+    feeder = FrameFeeder(link, fps=FPS)
+    sink = bytearray()
+    frames = 300  # 3 s of capture time
+    try:
+        feeder.frames(frames, flow_y=1.0, peer=peer, sink=sink)
+        messages = strict_parse(bytes(sink))
+    finally:
+        link.close()
+    names = {m.get_type() for m in messages}
+    assert expected <= names and "HEARTBEAT" in names
+    if absent:
+        assert absent not in names
+    span_s = frames / FPS
+    rate = link.message_rate_hz
+    for name in expected:
+        count = len(of_type(messages, name))
+        # Frame-aligned emission: the highest rate ≤ the chosen one that divides 100 fps.
+        frames_per_message = math.ceil(FPS / rate - 0.25)
+        assert count == pytest.approx(span_s * FPS / frames_per_message, abs=2)
+        assert count <= rate * span_s + 2
+    # ≤ 60 % of the line (8N1 = baud/10 bytes/s) per second of capture time.
+    assert len(sink) / span_s <= 0.6 * baud / 10
+    assert link.stats["dropped_messages"] == 0
+    assert link.stats["bytes_written"] == len(sink)
+
+
+def test_rate_chosen_from_baud():
+    assert make_link_no_port(autopilot="ardupilot", baud=57600).message_rate_hz == 74
+    assert make_link_no_port(autopilot="both", baud=57600).message_rate_hz == 33
+    assert make_link_no_port(autopilot="both", baud=115200).message_rate_hz == 67
+    assert make_link_no_port(autopilot="px4", baud=921600).message_rate_hz == 100
+    assert make_link_no_port(autopilot="px4", baud=921600, message_rate_hz=25).message_rate_hz == 25
+
+
+def make_link_no_port(**kw):
+    link = open_link(LinkConfig(port=None, focal_length_px=F, **kw))
+    link.close()
+    return link
+
+
+def fly(peer, *, flow_x, flow_y, frames=100, **kw):
+    link = make_link(peer, autopilot="both", **kw)
+    sink = bytearray()
+    try:
+        FrameFeeder(link, fps=FPS).frames(frames, flow_x=flow_x, flow_y=flow_y, peer=peer, sink=sink)
+    finally:
+        link.close()
+    sink.extend(peer.read())
+    messages = strict_parse(bytes(sink))
+    return link, of_type(messages, "OPTICAL_FLOW"), of_type(messages, "OPTICAL_FLOW_RAD")
+
+
+def test_forward_flight_gives_positive_y(peer):
+    # Flying forward, the ground moves down the image: +v. 1.2 px/frame at 100 fps, f = 400 px.
+    _, flow, rad = fly(peer, flow_x=0.0, flow_y=1.2)
+    expected_rate = 1.2 * FPS / F
+    assert len(flow) > 10 and len(rad) > 10
+    for m in flow:
+        assert m.flow_rate_y == pytest.approx(expected_rate, rel=0.01)
+        assert abs(m.flow_rate_x) < 1e-6
+        assert m.flow_y > 0 and m.quality == 200 and m.ground_distance == -1.0
+    for m in rad:
+        assert m.integrated_y > 0
+        assert m.integrated_y / (m.integration_time_us / 1e6) == pytest.approx(expected_rate, rel=0.01)
+        assert all(math.isnan(g) for g in (m.integrated_xgyro, m.integrated_ygyro, m.integrated_zgyro))
+        assert m.distance == -1.0
+    # Deci-pixels, same axes, remainder carried: the sum matches 10 × Σv.
+    total_v = 1.2 * sum(m.integration_time_us for m in rad) / 1e6 * FPS
+    assert sum(m.flow_y for m in flow) == pytest.approx(10 * total_v, abs=1)
+
+
+def test_rightward_flight_gives_negative_x(peer):
+    # Moving right, the ground moves left in the image: -u.
+    _, flow, rad = fly(peer, flow_x=-0.8, flow_y=0.0)
+    for m in flow:
+        assert m.flow_rate_x == pytest.approx(-0.8 * FPS / F, rel=0.01)
+        assert m.flow_x < 0
+    for m in rad:
+        assert m.integrated_x < 0 and abs(m.integrated_y) < 1e-9
+        assert m.integrated_x == pytest.approx(-0.8 / F * m.integration_time_us / 1e4, rel=0.01)
+
+
+def test_90_degree_mounting_rotates_axes(peer):
+    # Camera turned 90° clockwise (image top to the right): forward flight moves the ground
+    # to the vehicle's rear, which is the image's right (+u). The link must report forward
+    # flight (+y), exactly as a default-mounted camera would.
+    _, flow, rad = fly(peer, flow_x=1.2, flow_y=0.0, mounting_rotation_deg=90)
+    for m in rad:
+        assert m.integrated_y > 0 and abs(m.integrated_x) < 1e-9
+    for m in flow:
+        assert m.flow_rate_y == pytest.approx(1.2 * FPS / F, rel=0.01)
+
+
+def test_ground_distance_and_ids(peer):
+    _, flow, rad = fly(peer, flow_x=0.0, flow_y=1.0, frames=20, ground_distance_m=1.5, sysid=42, compid=159,
+                       sensor_id=3)
+    assert flow[0].ground_distance == pytest.approx(1.5) and rad[0].distance == pytest.approx(1.5)
+    assert flow[0].sensor_id == 3 and rad[0].sensor_id == 3
+    assert flow[0].get_srcSystem() == 42 and flow[0].get_srcComponent() == 159
+
+
+def test_integration_time_is_real_elapsed_time_and_drops_do_not_spike(peer):
+    link = make_link(peer, autopilot="px4", message_rate_hz=50)
+    sink = bytearray()
+    try:
+        # 100 fps with every 7th frame lost: the next frame carries two frames of motion.
+        FrameFeeder(link, fps=FPS).frames(200, flow_y=1.0, skip_every=7, peer=peer, sink=sink)
+    finally:
+        link.close()
+    rad = of_type(strict_parse(bytes(sink)), "OPTICAL_FLOW_RAD")
+    assert len(rad) > 50
+    for prev, cur in zip(rad, rad[1:]):
+        # time_usec is the capture time of the newest frame: consecutive differences are
+        # exactly the integration times (continuous intervals, no overlap, no hole).
+        assert cur.integration_time_us == cur.time_usec - prev.time_usec
+        assert cur.integration_time_us in (20_000, 30_000)
+        assert cur.integrated_y / cur.integration_time_us * 1e6 == pytest.approx(FPS / F, rel=1e-4)
+    assert link.stats["integration_restarts"] == 0
+
+
+def test_blind_camera_quality_zero_and_heartbeats_go_on(peer):
+    link = make_link(peer, autopilot="both")
+    sink = bytearray()
+    try:
+        FrameFeeder(link, fps=FPS).frames(50, flow_y=1.0, peer=peer, sink=sink)
+        before = len(strict_parse(bytes(sink)))
+        # Camera blind for 5 s of host time: only service() is called (simulated clock,
+        # advanced in 10 ms steps; counts are checked against it, not against the wall clock).
+        start = host_us()
+        for step in range(1, 501):
+            link.service(start + step * 10_000)
+            sink.extend(peer.read())
+    finally:
+        link.close()
+    messages = strict_parse(bytes(sink))[before:]
+    heartbeats = of_type(messages, "HEARTBEAT")
+    flow = of_type(messages, "OPTICAL_FLOW")
+    rad = of_type(messages, "OPTICAL_FLOW_RAD")
+    assert len(heartbeats) == pytest.approx(5, abs=1)  # 1 Hz
+    assert len(flow) == pytest.approx(47, abs=4) and len(rad) == len(flow)  # 10 Hz after 0.3 s
+    assert all(m.quality == 0 and m.flow_rate_x == 0 and m.flow_rate_y == 0 for m in flow)
+    assert all(m.quality == 0 and 0 < m.integration_time_us < 500_000 for m in rad)
+    # ArduPilot needs < 0.5 s between messages, PX4 needs continuity: time_usec advances by
+    # the integration time.
+    for prev, cur in zip(rad, rad[1:]):
+        assert cur.time_usec - prev.time_usec == cur.integration_time_us
+
+
+def test_blind_quality_zero_frames_from_the_daemon(peer):
+    """The daemon's own quality-0 keep-alive samples (every 0.1 s) become quality-0 reports."""
+    link = make_link(peer, autopilot="px4")
+    sink = bytearray()
+    try:
+        feeder = FrameFeeder(link, fps=FPS)
+        feeder.frames(20, flow_y=1.0, peer=peer, sink=sink)
+        t = feeder.t_us + 250_000
+        for _ in range(10):
+            now = host_us()
+            link.submit(FlowSample(timestamp_us=t, capture_host_us=now, flow_x=0.0, flow_y=0.0, quality=0))
+            link.service(now)
+            t += 100_000
+        sink.extend(peer.read())
+    finally:
+        link.close()
+    rad = of_type(strict_parse(bytes(sink)), "OPTICAL_FLOW_RAD")
+    blind = [m for m in rad if m.quality == 0]
+    assert len(blind) == 10
+    assert blind[0].integration_time_us == 250_000
+    assert all(m.integration_time_us == 100_000 for m in blind[1:])
+
+
+def test_reads_autopilot_heartbeat_and_survives_garbage(peer):
+    link = make_link(peer, autopilot="ardupilot")
+    rng = __import__("random").Random(3)
+    try:
+        fc = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+        fc_heartbeat = fc.heartbeat_encode(mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                           0, 0, mavlink2.MAV_STATE_STANDBY).pack(fc)
+        garbage = bytes(rng.getrandbits(8) for _ in range(10_000))
+        feeder = FrameFeeder(link, fps=FPS)
+        sink = bytearray()
+        peer.write(garbage[:5000] + fc_heartbeat + garbage[5000:] + fc_heartbeat)
+        for _ in range(20):
+            feeder.frames(5, flow_y=1.0, peer=peer, sink=sink)
+        assert link.stats["rx_heartbeat"] == {"sysid": 1, "compid": 1, "type": mavlink2.MAV_TYPE_QUADROTOR,
+                                              "autopilot": mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                              "system_status": mavlink2.MAV_STATE_STANDBY}
+        assert link.stats["rx_bytes"] == len(garbage) + 2 * len(fc_heartbeat)
+        assert link.stats["rx_messages"].get("HEARTBEAT", 0) >= 1
+        assert link.stats["internal_errors"] == 0
+        # ... and it still sends valid flow.
+        assert len(of_type(strict_parse(bytes(sink)), "OPTICAL_FLOW")) > 10
+    finally:
+        link.close()
+
+
+def test_latencies_are_reported_once(peer):
+    link = make_link(peer)
+    try:
+        FrameFeeder(link, fps=FPS).frames(40, flow_y=1.0, peer=peer, sink=bytearray())
+        lat = link.latencies_us()
+        assert len(lat) == link.stats["messages_sent"]["OPTICAL_FLOW"]
+        assert all(0 <= v < 1_000_000 for v in lat)
+        assert link.latencies_us() == []
+    finally:
+        link.close()

@@ -1,0 +1,189 @@
+"""MSP v2 link (INAV): test vector, independent decoding, INAV's sign/scale chain, carry."""
+
+import math
+import os
+import struct
+import sys
+
+import pytest
+
+sys.path.insert(0, os.path.dirname(__file__))
+from ptyutil import FrameFeeder, PtyPeer, host_us  # noqa: E402
+
+from firmware_py.links import LinkConfig, open_link  # noqa: E402
+from firmware_py.links.msp import MspLink, encode_optic_flow  # noqa: E402
+
+SPEC_EXAMPLE = "24583c00021f0900c80c000000f9ffffffc1"  # quality 200, x 12, y -7
+FPS = 100.0
+
+
+def _crc_table():
+    # Independent of the link's bitwise CRC: a table-driven CRC-8 with polynomial 0xD5.
+    table = []
+    for byte in range(256):
+        crc = byte
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0xD5) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
+        table.append(crc)
+    return table
+
+
+CRC_TABLE = _crc_table()
+
+
+def decode_msp_v2(stream: bytes):
+    """Decode a byte stream into [(function, payload)], asserting every frame is intact."""
+    frames, i = [], 0
+    while i < len(stream):
+        assert stream[i:i + 3] == b"$X<", f"bad header at {i}: {stream[i:i + 3]!r}"
+        flags, function, size = struct.unpack_from("<BHH", stream, i + 3)
+        body = stream[i + 3:i + 8 + size]
+        crc = 0
+        for b in body:
+            crc = CRC_TABLE[crc ^ b]
+        assert crc == stream[i + 8 + size], "CRC mismatch"
+        assert flags == 0
+        frames.append((function, stream[i + 8:i + 8 + size]))
+        i += 9 + size
+    return frames
+
+
+def optic_flow(stream: bytes):
+    out = []
+    for function, payload in decode_msp_v2(stream):
+        assert function == 0x1F02 and len(payload) == 9
+        out.append(struct.unpack("<Bii", payload))
+    return out
+
+
+def test_spec_example_byte_exact_and_decodes():
+    data = encode_optic_flow(quality=200, motion_x=12, motion_y=-7)
+    assert data.hex() == SPEC_EXAMPLE
+    assert optic_flow(bytes.fromhex(SPEC_EXAMPLE)) == [(200, 12, -7)]
+
+
+def inav_velocity(quality, motion_x, motion_y, dt_us, *, opflow_scale=10.5, alt_m=1.0, gyro_dps=(0.0, 0.0)):
+    """What INAV does with one message (opflow_msp.c → opflow.c → pos_estimator_flow.c).
+
+    Returns the body-frame velocity (forward, left) in m/s. INAV's body frame is X forward,
+    Y left, Z up; gyro X = roll right, gyro Y = pitch down.
+    """
+    assert quality * 100 // 255 >= 35, "INAV ignores flow under 35 % quality"
+    rate_scale = (1e6 / dt_us) / opflow_scale
+    # opflow_align default CW0_DEG_FLIP: x -> -x, y -> y (boardalignment.c)
+    aligned_x, aligned_y = -motion_x, motion_y
+    flow_x = math.radians(aligned_x * rate_scale)
+    flow_y = math.radians(aligned_y * rate_scale)
+    body_x, body_y = (math.radians(g) for g in gyro_dps)
+    vel_forward = -(flow_y - body_y) * alt_m
+    vel_left = (flow_x - body_x) * alt_m
+    return vel_forward, vel_left
+
+
+@pytest.fixture
+def peer(tmp_path):
+    p = PtyPeer(tmp_path / "ttyFC")
+    yield p
+    p.close()
+
+
+def run_inav(peer, *, flow_x, flow_y, frames=200, focal_length_px=400.0, **kw):
+    link = open_link(LinkConfig(port=peer.path, baud=115200, autopilot="inav", focal_length_px=focal_length_px,
+                                **kw))
+    assert isinstance(link, MspLink)
+    sink = bytearray()
+    try:
+        FrameFeeder(link, fps=FPS).frames(frames, flow_x=flow_x, flow_y=flow_y, peer=peer, sink=sink)
+    finally:
+        link.close()
+    sink.extend(peer.read())
+    return link, optic_flow(bytes(sink))
+
+
+def test_rate_default_50hz_from_capture_time(peer):
+    link, messages = run_inav(peer, flow_x=0.0, flow_y=1.0, frames=300)
+    assert link.message_rate_hz == 50
+    assert len(messages) == pytest.approx(3.0 * 50, abs=2)  # 3 s of capture time
+    assert 18 * len(messages) / 3.0 <= 0.6 * 115200 / 10
+
+
+def test_rate_limited_by_baud():
+    link = open_link(LinkConfig(port=None, baud=9600, autopilot="inav", focal_length_px=400.0))
+    link.close()
+    assert link.message_rate_hz == 32  # 960 B/s * 0.6 / 18 B
+
+
+def test_forward_flight_worked_example(peer):
+    # docs/telemetry.md: f = 400 px, 100 fps, ground moving down the image at 2 px/frame
+    # (forward at 0.5 m/s, 1 m above ground). 50 Hz → 4 px per message = 0.01 rad = 0.573°
+    # → motionY = -10.5 × 0.573 = -6.016 counts (remainder carried).
+    _, messages = run_inav(peer, flow_x=0.0, flow_y=2.0)
+    assert {m[1] for m in messages} == {0}
+    assert set(m[2] for m in messages) <= {-6, -7}
+    total = sum(m[2] for m in messages)
+    expected = -10.5 * math.degrees(len(messages) * 4.0 / 400.0)
+    assert total == pytest.approx(expected, abs=1)
+    # One count is 1/10.5° per 20 ms = 0.083 rad/s: single messages are quantised, the carry
+    # makes the mean exact.
+    velocities = [inav_velocity(q, mx, my, 20_000) for q, mx, my in messages]
+    assert all(0.5 - 0.09 < fwd < 0.5 + 0.09 and left == 0.0 for fwd, left in velocities)
+    assert sum(v[0] for v in velocities) / len(velocities) == pytest.approx(0.5, rel=0.01)
+
+
+def test_rightward_flight_inav_sees_rightward_velocity(peer):
+    # Moving right at 0.25 m/s at 1 m: the ground moves left in the image, u = -1 px/frame.
+    _, messages = run_inav(peer, flow_x=-1.0, flow_y=0.0)
+    velocities = [inav_velocity(q, mx, my, 20_000) for q, mx, my in messages]
+    mean_left = sum(v[1] for v in velocities) / len(velocities)
+    assert mean_left == pytest.approx(-0.25, rel=0.02)  # -left = right
+    assert all(mx > 0 for _, mx, _ in messages)
+
+
+def test_pure_rotation_cancels_against_inav_gyro(peer):
+    # Rolling right at 30 deg/s: the view tilts left, the ground moves right in the image,
+    # u = +rate·f/fps. INAV subtracts its gyro (X = roll right): the velocity must be ~0.
+    rate = math.radians(30.0)
+    u = rate * 400.0 / FPS
+    _, messages = run_inav(peer, flow_x=u, flow_y=0.0)
+    lefts = [inav_velocity(q, mx, my, 20_000, gyro_dps=(30.0, 0.0))[1] for q, mx, my in messages[1:]]
+    assert all(abs(v) < 0.09 for v in lefts)  # only count rounding left over ...
+    assert abs(sum(lefts) / len(lefts)) < 0.005  # ... which the carry averages out
+    # Pitching down at 30 deg/s (INAV gyro Y positive): the view tilts back, the ground moves
+    # up the image (v < 0).
+    _, messages = run_inav(peer, flow_x=0.0, flow_y=-u)
+    forwards = [inav_velocity(q, mx, my, 20_000, gyro_dps=(0.0, 30.0))[0] for q, mx, my in messages[1:]]
+    assert all(abs(v) < 0.09 for v in forwards)
+    assert abs(sum(forwards) / len(forwards)) < 0.005
+
+
+def test_remainder_carry_small_flow(peer):
+    # f = 10.5 × 180/π px makes one count per pixel: 0.2 px/frame at 100 fps is 0.4 counts per
+    # 50 Hz message. Rounding each message would send zeros forever.
+    f = 10.5 * 180.0 / math.pi
+    _, messages = run_inav(peer, flow_x=0.0, flow_y=0.2, frames=500, focal_length_px=f)
+    counts = [m[2] for m in messages]
+    assert set(counts) == {0, -1}
+    assert sum(counts) == pytest.approx(-0.4 * len(messages), abs=1)
+
+
+def test_counts_per_degree_setting(peer):
+    _, messages = run_inav(peer, flow_x=0.0, flow_y=2.0, msp_counts_per_degree=21.0)
+    assert sum(m[2] for m in messages) == pytest.approx(-21.0 * math.degrees(len(messages) * 0.01), abs=1)
+
+
+def test_blind_keeps_inav_alive_with_quality_zero(peer):
+    link = open_link(LinkConfig(port=peer.path, baud=115200, autopilot="inav", focal_length_px=400.0))
+    sink = bytearray()
+    try:
+        FrameFeeder(link, fps=FPS).frames(20, flow_y=1.0, peer=peer, sink=sink)
+        before = len(optic_flow(bytes(sink)))
+        start = host_us()
+        for step in range(1, 201):  # 2 s of simulated host time, no frames
+            link.service(start + step * 10_000)
+            sink.extend(peer.read())
+    finally:
+        link.close()
+    blind = optic_flow(bytes(sink))[before:]
+    # INAV times out after 0.2 s: 10 Hz keep-alive after 0.15 s.
+    assert len(blind) == pytest.approx(19, abs=2)
+    assert all(q == 0 and mx == 0 and my == 0 for q, mx, my in blind)

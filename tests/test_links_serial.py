@@ -1,0 +1,179 @@
+"""Transport faults on real ptys: vanished port, stalled reader, missing port, message log."""
+
+import csv
+import json
+import logging
+import os
+import sys
+import threading
+
+import pytest
+from pymavlink.dialects.v20 import common as mavlink2
+
+sys.path.insert(0, os.path.dirname(__file__))
+from ptyutil import FrameFeeder, PtyPeer, host_us  # noqa: E402
+
+from firmware_py.links import LinkConfig, open_link  # noqa: E402
+
+FPS = 100.0
+
+
+def strict_parse(data: bytes):
+    messages = mavlink2.MAVLink(None).parse_buffer(data) or []
+    assert all(m.get_type() != "BAD_DATA" for m in messages)
+    return messages
+
+
+def robust_parse(data: bytes):
+    parser = mavlink2.MAVLink(None)
+    parser.robust_parsing = True
+    return [m for m in parser.parse_buffer(data) or [] if m.get_type() != "BAD_DATA"]
+
+
+def test_pty_closed_and_reopened_mid_stream(tmp_path, caplog):
+    peer = PtyPeer(tmp_path / "ttyFC")
+    link = open_link(LinkConfig(port=peer.path, baud=115200, autopilot="px4", focal_length_px=400.0))
+    feeder = FrameFeeder(link, fps=FPS)
+    sink = bytearray()
+    try:
+        feeder.frames(50, flow_y=1.0, peer=peer, sink=sink)
+        first = strict_parse(bytes(sink))
+        assert len([m for m in first if m.get_type() == "OPTICAL_FLOW_RAD"]) > 10
+
+        caplog.set_level(logging.DEBUG, logger="firmware_py.links")
+        peer.close()  # the device vanishes (USB adapter unplugged)
+        feeder.frames(30, flow_y=1.0)  # no exception may escape submit/service
+        assert link.stats["port_open"] is False
+        assert link.stats["write_errors"] + link.stats["read_errors"] >= 1
+        assert peer.path in link.stats["last_error"]
+        assert any(peer.path in r.getMessage() for r in caplog.records)
+
+        # Reopen attempts with the device still missing: back-off, no exception.
+        now = host_us()
+        for k in range(1, 30):
+            link.service(now + k * 100_000)
+        assert link.stats["open_failures"] >= 2
+        assert link.stats["open_failures"] < 29  # backed off, not every call
+
+        peer.open()  # plugged back in at the same path
+        later = now + 30 * 100_000
+        for k in range(1, 200):  # up to 20 s of simulated back-off
+            link.service(later + k * 100_000)
+            if link.stats["port_open"]:
+                break
+        assert link.stats["port_open"] is True and link.stats["reopen_count"] == 1
+        sink = bytearray(peer.read())
+        feeder.frames(50, flow_y=1.0, peer=peer, sink=sink)
+        again = strict_parse(bytes(sink))
+        assert again[0].get_type() == "HEARTBEAT"  # a heartbeat greets every (re)open
+        rad = [m for m in again if m.get_type() == "OPTICAL_FLOW_RAD"]
+        assert len(rad) > 10
+        # The simulated seconds without frames were reported as blind (quality 0); the frames
+        # after the reopen integrate normally (px4 at 115200 baud: 100 Hz = every frame).
+        fresh = [m for m in rad if m.quality == 200]
+        assert len(fresh) >= 45 and all(m.integration_time_us == 10_000 for m in fresh)
+        assert all(m.quality == 0 and m.integration_time_us < 500_000 for m in rad[:len(rad) - len(fresh)])
+        assert link.stats["internal_errors"] == 0
+    finally:
+        link.close()
+        peer.close()
+
+
+def test_reader_that_stops_reading_drops_oldest_and_never_blocks(tmp_path):
+    peer = PtyPeer(tmp_path / "ttyFC")
+    link = open_link(LinkConfig(port=peer.path, baud=115200, autopilot="both", focal_length_px=400.0))
+    feeder = FrameFeeder(link, fps=FPS)
+    finished = threading.Event()
+    errors = []
+
+    def frame_loop():
+        try:
+            feeder.frames(3000, flow_y=1.0)  # nobody reads: the pty buffer fills up
+        except Exception as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+        finished.set()
+
+    thread = threading.Thread(target=frame_loop, daemon=True)
+    try:
+        thread.start()
+        # A blocking write would hang here forever; 60 s is far beyond the ~1 s it takes.
+        assert finished.wait(60), "submit()/service() blocked on a stalled reader"
+        assert not errors
+        stats = link.stats
+        assert stats["dropped_messages"] > 100
+        assert stats["write_errors"] == 0 and stats["port_open"]
+        assert link.transport.queued_messages <= link.transport.max_queue_messages + 1
+        # The reader wakes up: the stream is intact (only whole messages were dropped) and
+        # fresh messages follow.
+        backlog = peer.read()
+        sink = bytearray()
+        feeder.frames(100, flow_y=1.0, peer=peer, sink=sink)
+        messages = strict_parse(backlog + bytes(sink))
+        assert len(messages) > 100
+        newest = [m for m in messages if m.get_type() == "OPTICAL_FLOW_RAD"]
+        assert feeder.t_us - newest[-1].time_usec <= 20_000  # caught up with real time
+    finally:
+        link.close()
+        peer.close()
+
+
+def test_missing_port_is_retried_not_raised(tmp_path):
+    path = str(tmp_path / "ttyUSB-not-yet")
+    link = open_link(LinkConfig(port=path, baud=57600, autopilot="ardupilot", focal_length_px=400.0))
+    try:
+        assert link.stats["port_open"] is False
+        assert path in link.stats["last_error"]
+        FrameFeeder(link, fps=FPS).frames(20, flow_y=1.0)  # runs without a port
+        peer = PtyPeer(path)
+        now = host_us()
+        for k in range(1, 100):
+            link.service(now + k * 100_000)
+            if link.stats["port_open"]:
+                break
+        assert link.stats["port_open"] is True
+        messages = strict_parse(peer.read())
+        assert messages and messages[0].get_type() == "HEARTBEAT"
+        peer.close()
+    finally:
+        link.close()
+
+
+def test_random_bytes_from_the_autopilot_side_msp(tmp_path):
+    peer = PtyPeer(tmp_path / "ttyFC")
+    link = open_link(LinkConfig(port=peer.path, baud=115200, autopilot="inav", focal_length_px=400.0))
+    try:
+        peer.write(os.urandom(10_000))
+        FrameFeeder(link, fps=FPS).frames(50, flow_y=1.0)
+        assert link.stats["rx_bytes"] == 10_000
+        assert link.stats["internal_errors"] == 0
+    finally:
+        link.close()
+        peer.close()
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".jsonl"])
+def test_message_log(tmp_path, suffix):
+    peer = PtyPeer(tmp_path / "ttyFC")
+    log_path = tmp_path / ("sent" + suffix)
+    link = open_link(LinkConfig(port=peer.path, baud=115200, autopilot="both", focal_length_px=400.0,
+                                message_log=str(log_path)))
+    sink = bytearray()
+    try:
+        FrameFeeder(link, fps=FPS).frames(60, flow_y=1.0, peer=peer, sink=sink)
+    finally:
+        link.close()
+        peer.close()
+    sent = robust_parse(bytes(sink))
+    if suffix == ".csv":
+        with open(log_path, newline="") as f:
+            rows = list(csv.DictReader(f))
+    else:
+        rows = [json.loads(line) for line in open(log_path)]
+    assert [r["message"] for r in rows] == [m.get_type() for m in sent]
+    rad_rows = [r for r in rows if r["message"] == "OPTICAL_FLOW_RAD"]
+    rad_msgs = [m for m in sent if m.get_type() == "OPTICAL_FLOW_RAD"]
+    for row, msg in zip(rad_rows, rad_msgs):
+        assert int(row["time_usec"]) == msg.time_usec
+        assert int(row["integration_time_us"]) == msg.integration_time_us
+        assert float(row["integrated_y"]) == pytest.approx(msg.integrated_y, rel=1e-6)
+        assert int(row["latency_us"]) >= 0

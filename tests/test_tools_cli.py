@@ -1,0 +1,320 @@
+"""The `emdflow` command: flow, frames, eval, bench — each on a small generated clip."""
+
+import csv
+import importlib.machinery
+import importlib.util
+import os
+import subprocess
+import sys
+import types
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from emdflow.cli import main
+from emdflow.synthetic import CameraFlight
+from emdflow.tools.flo import read_flo
+
+import emdflow
+
+# Where the emdflow under test lives (the installed package in CI, the source tree otherwise):
+# subprocesses import the same one.
+PACKAGE_ROOT = Path(emdflow.__file__).resolve().parents[1]
+W, H, N = 96, 72, 9
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def _env():
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(PACKAGE_ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    return env
+
+
+@pytest.fixture(scope="session")
+def backend():
+    """The engine backend these tool tests run on: numpy unless EMDFLOW_TEST_BACKEND says otherwise.
+
+    The tools only see FlowFields, and both backends give identical fields (the engine's own
+    tests check that); the numpy reference is fast at 96×72 and needs no kernel build, which
+    keeps this file well under its time budget. ``EMDFLOW_TEST_BACKEND=opencl`` runs them on
+    OpenCL (skipped when the OpenCL backend is not installed).
+    """
+    forced = os.environ.get("EMDFLOW_TEST_BACKEND", "numpy")
+    if forced == "opencl" and importlib.util.find_spec("emdflow.opencl_backend") is None:
+        pytest.skip("EMDFLOW_TEST_BACKEND=opencl but emdflow.opencl_backend is not installed")
+    return forced
+
+
+def test_default_backend_is_opencl():
+    from emdflow.cli import build_parser
+
+    for cmd in (["flow", "x", "-o", "y.avi"], ["frames", "x"], ["eval"]):
+        assert build_parser().parse_args(cmd).backend == "opencl"
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    """A 96×72, 9-frame lossless video of a camera flight at (2, 1) px/frame, and the frames."""
+    d = tmp_path_factory.mktemp("clip")
+    flight = CameraFlight("gravel", width=W, height=H, flow=(2.0, 1.0), seed=4)
+    frames = [flight.render(t) for t in range(N)]
+    path = d / "clip.avi"
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 25.0, (W, H), True)
+    for f in frames:
+        w.write(cv2.cvtColor(f, cv2.COLOR_GRAY2BGR))
+    w.release()
+    folder = d / "seq"
+    folder.mkdir()
+    for i, f in enumerate(frames):
+        cv2.imwrite(str(folder / f"frame{i}.png"), f)
+    return path, folder, frames
+
+
+def _read_video(path):
+    cap = cv2.VideoCapture(str(path))
+    frames = []
+    while True:
+        ok, f = cap.read()
+        if not ok:
+            break
+        frames.append(f)
+    fps = cap.get(cv2.CAP_PROP_FPS)
+    cap.release()
+    return frames, fps
+
+
+def _one_line_error(capsys, *names):
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    for name in names:
+        assert str(name) in err, err
+    return err
+
+
+# ------------------------------------------------------------------------------------ flow
+
+
+@pytest.mark.parametrize("name, codec", [("flow.avi", None), ("flow.mkv", None), ("flow_mjpg.avi", "mjpg")])
+def test_flow_writes_a_readable_video(tmp_path, clip, backend, name, codec):
+    video, _, _ = clip
+    out = tmp_path / name
+    argv = ["flow", str(video), "-o", str(out), "--backend", backend, "--upscale", "2", "-q"]
+    if codec:
+        argv += ["--codec", codec]
+    assert main(argv) == 0
+    frames, fps = _read_video(out)
+    assert len(frames) == N
+    assert frames[0].shape == (2 * H, 2 * W, 3)
+    assert fps == pytest.approx(25.0)
+
+
+def test_flow_exports_npz_and_flo(tmp_path, clip, backend):
+    _, folder, _ = clip
+    out, npz, flo_dir = tmp_path / "f.avi", tmp_path / "f.npz", tmp_path / "flo"
+    assert main(["flow", str(folder), "-o", str(out), "--npz", str(npz), "--flo-dir", str(flo_dir),
+                 "--backend", backend, "--fps", "10", "-q"]) == 0
+    frames, fps = _read_video(out)
+    assert len(frames) == N and fps == pytest.approx(10.0)
+    assert frames[0].shape[:2] == (H * 4, W * 4)  # auto upscale to ~480 px wide, at most 4
+    z = np.load(npz)
+    assert z["u"].shape == (N, H, W) and z["u"].dtype == np.float16
+    assert z["quality"].shape == (N,) and z["quality"][-1] > 0
+    assert z["flow_x"][-1] > 1.0  # the flight moves right at 2 px/frame
+    flos = sorted(flo_dir.glob("*.flo"))
+    assert len(flos) == N
+    u, v = read_flo(flos[-1])
+    assert u.shape == (H, W)
+    np.testing.assert_array_equal(np.isnan(u), np.isnan(z["u"][-1]))
+    np.testing.assert_allclose(u[np.isfinite(u)], z["u"][-1][np.isfinite(u)].astype(np.float32))
+    assert np.isfinite(u).any()
+    assert np.isnan(read_flo(flos[0])[0]).all()  # history not full yet
+
+
+def test_flow_ctrl_c_leaves_a_playable_file(tmp_path, clip, backend, monkeypatch):
+    import emdflow.tools.flowviz as fv
+
+    real = fv.render_flow_frame
+    calls = {"n": 0}
+
+    def interrupting(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == 5:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(fv, "render_flow_frame", interrupting)
+    out = tmp_path / "cut.avi"
+    assert main(["flow", str(clip[0]), "-o", str(out), "--backend", backend, "-q"]) == 130
+    frames, _ = _read_video(out)
+    assert len(frames) == 4
+
+
+def test_flow_on_a_synthetic_input_with_snapshot(tmp_path, backend):
+    out, snap = tmp_path / "s.mkv", tmp_path / "s.png"
+    src = "synthetic:texture=brick,u=-1,v=3,frames=6,size=64x48,fps=20"
+    assert main(["flow", src, "-o", str(out), "--snapshot", str(snap), "--upscale", "1",
+                 "--backend", backend, "-q"]) == 0
+    frames, fps = _read_video(out)
+    assert len(frames) == 6 and frames[0].shape == (48, 64, 3) and fps == pytest.approx(20.0)
+    assert snap.read_bytes()[:8] == PNG_MAGIC
+    np.testing.assert_array_equal(cv2.imread(str(snap)), frames[-1])  # FFV1 is lossless
+
+
+# ---------------------------------------------------------------------------------- frames
+
+
+def test_frames_csv(tmp_path, clip, backend):
+    video, folder, _ = clip
+    out = tmp_path / "frames.csv"
+    assert main(["frames", str(video), "-o", str(out), "--backend", backend,
+                 "--focal-length-px", "100", "-q"]) == 0
+    rows = list(csv.DictReader(out.open()))
+    assert list(rows[0]) == ["frame", "t", "flow_x", "flow_y", "rate_x", "rate_y", "quality"]
+    assert len(rows) == N
+    assert float(rows[3]["t"]) == pytest.approx(3 / 25.0)
+    assert rows[0]["quality"] == "0"  # history filling
+    last = rows[-1]
+    assert int(last["quality"]) > 0
+    assert float(last["flow_x"]) > 1.0 and float(last["flow_y"]) > 0.2
+    assert float(last["rate_x"]) == pytest.approx(float(last["flow_x"]) * 25.0 / 100.0, rel=1e-3)
+
+
+def test_frames_on_a_folder_to_stdout_via_python_m(clip, backend):
+    _, folder, _ = clip
+    r = subprocess.run([sys.executable, "-m", "emdflow", "frames", str(folder), "--backend", backend],
+                       env=_env(), capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.strip().splitlines()
+    assert lines[0] == "frame,t,flow_x,flow_y,quality"
+    assert len(lines) == N + 1
+    assert lines[1].split(",")[1] == ""  # no frame rate for a folder: t empty
+
+
+# ------------------------------------------------------------------------------------ eval
+
+
+def test_eval_csv_table_and_plot(tmp_path, backend, capsys):
+    texture = tmp_path / "ground.png"
+    import skimage.data
+
+    cv2.imwrite(str(texture), skimage.data.brick()[:200, :200])
+    out_csv, out_png = tmp_path / "e.csv", tmp_path / "e.png"
+    argv = ["eval", "--size", "96x72", "--speeds", "1,3", "--directions", "0,112.5",
+            "--variants", "base,zoom", "--frames", "2", "--repeats", "1",
+            "--textures", "gravel", str(texture), "--csv", str(out_csv), "--plot", str(out_png),
+            "--backend", backend, "-q"]
+    assert main(argv) == 0
+    table = capsys.readouterr().out
+    assert "variant base" in table and "variant zoom" in table and "DIS" in table
+    rows = list(csv.DictReader(out_csv.open()))
+    keys = [(r["variant"], r["method"], r["speed"]) for r in rows]
+    assert keys == [(v, m, s) for v in ("base", "zoom") for m in ("emd", "dis") for s in ("1", "3", "all")]
+    for r in rows:
+        assert int(r["frames"]) == (4 if r["speed"] != "all" else 8)  # 2 directions × 2 frames
+        assert 0.0 <= float(r["coverage"]) <= 1.0
+    dis = {(r["variant"], r["speed"]): r for r in rows if r["method"] == "dis"}
+    for key, r in dis.items():  # DIS on small, easy motion: its errors are small
+        assert float(r["summary_rel_error_median"]) < 0.15, key
+        assert float(r["summary_dir_error_median_deg"]) < 5.0, key
+        assert float(r["pixel_error_median"]) < 0.3, key
+        assert float(r["density"]) == 1.0 and float(r["sign_accuracy"]) > 0.9
+    assert float(dis[("zoom", "all")]["expansion_rel_error_median"]) < 0.6
+    emd = [r for r in rows if r["method"] == "emd" and r["variant"] == "base" and r["speed"] == "all"][0]
+    assert float(emd["density"]) > 0.01 and float(emd["sign_accuracy"]) > 0.8
+    png = out_png.read_bytes()
+    assert png[:8] == PNG_MAGIC
+    img = cv2.imread(str(out_png))
+    assert img is not None and img.shape[0] > 100 and img.shape[1] > 100
+
+    # re-plot and Markdown from the CSV without flying again
+    md, png2 = tmp_path / "t.md", tmp_path / "again.png"
+    assert main(["eval", "--from-csv", str(out_csv), "--plot", str(png2), "--markdown", str(md)]) == 0
+    assert png2.read_bytes()[:8] == PNG_MAGIC
+    text = md.read_text()
+    assert "| speed | EMD density" in text and "| zoom |" in text
+    bad = tmp_path / "bad.csv"
+    bad.write_text("a,b\n1,2\n")
+    capsys.readouterr()
+    assert main(["eval", "--from-csv", str(bad)]) == 2
+    _one_line_error(capsys, bad)
+
+
+def test_eval_truth_field_matches_the_renderer():
+    """The exact per-pixel truth warps frame t−1 onto frame t (zoom + translation)."""
+    from emdflow.tools.evaluate import fit_expansion, truth_field
+
+    f = CameraFlight("gravel", width=80, height=60, flow=(1.3, -0.7), noise_sigma=0, expansion_rate=0.02)
+    prev, nxt = f.render(4).astype(np.float32), f.render(5).astype(np.float32)
+    u, v = truth_field(f, 5, at="previous")
+    yy, xx = np.mgrid[0:60, 0:80].astype(np.float32)
+    warped = cv2.remap(nxt, xx + u.astype(np.float32), yy + v.astype(np.float32), cv2.INTER_CUBIC)
+    wrong = cv2.remap(nxt, xx + 1.3, yy - 0.7, cv2.INTER_CUBIC)  # translation only
+    inner = np.s_[8:-8, 8:-8]
+    assert np.abs(warped - prev)[inner].mean() < 0.3 * np.abs(wrong - prev)[inner].mean()
+    assert fit_expansion(u, v) == pytest.approx(0.02, rel=1e-6)
+    uc, vc = truth_field(f, 5, at="current")
+    assert uc[0, 40] == pytest.approx((1.3 + (40.5 - 40) * 0.02) / 1.02, rel=1e-6)  # (F + r·X) / (1 + r)
+
+
+# ----------------------------------------------------------------------------------- bench
+
+
+def test_bench_forwards_its_arguments(monkeypatch):
+    seen = {}
+    fake = types.ModuleType("emdflow.bench")
+    fake.__spec__ = importlib.machinery.ModuleSpec("emdflow.bench", None)
+    fake.main = lambda argv: seen.setdefault("argv", argv) and 0
+    monkeypatch.setitem(sys.modules, "emdflow.bench", fake)
+    assert main(["bench", "--sizes", "320x240", "--png", "b.png"]) == 0
+    assert seen["argv"] == ["--sizes", "320x240", "--png", "b.png"]
+
+
+# ---------------------------------------------------------------------------------- errors
+
+
+def test_bad_inputs_give_one_line_naming_the_file(tmp_path, capsys, clip):
+    missing = tmp_path / "missing.avi"
+    assert main(["flow", str(missing), "-o", str(tmp_path / "o.avi"), "--backend", "numpy"]) == 2
+    _one_line_error(capsys, missing)
+
+    junk = tmp_path / "junk.mp4"
+    junk.write_bytes(b"\0garbage" * 100)
+    assert main(["frames", str(junk), "--backend", "numpy"]) == 2
+    _one_line_error(capsys, junk)
+
+    assert main(["flow", str(clip[0]), "-o", str(tmp_path / "nodir" / "o.avi"), "--backend", "numpy"]) == 2
+    _one_line_error(capsys, tmp_path / "nodir" / "o.avi")
+
+    assert main(["flow", str(clip[0]), "-o", str(tmp_path / "o.gif"), "--backend", "numpy"]) == 2
+    _one_line_error(capsys, tmp_path / "o.gif")
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["frames", str(empty), "--backend", "numpy"]) == 2
+    _one_line_error(capsys, empty)
+
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    cv2.imwrite(str(seq / "a1.png"), clip[2][0])
+    (seq / "a2.png").write_bytes(b"not a png")
+    assert main(["frames", str(seq), "--backend", "numpy", "-o", str(tmp_path / "x.csv")]) == 2
+    _one_line_error(capsys, seq / "a2.png")
+
+    assert main(["frames", str(clip[1]), "--focal-length-px", "300", "--backend", "numpy"]) == 2
+    _one_line_error(capsys, clip[1], "--fps")
+
+    bad_texture = tmp_path / "tex.png"
+    bad_texture.write_text("nope")
+    for tex in (bad_texture, tmp_path / "absent.jpg"):
+        assert main(["eval", "--quick", "--textures", str(tex), "--csv", str(tmp_path / "e.csv")]) == 2
+        _one_line_error(capsys, tex)
+
+
+def test_exit_code_as_a_process(tmp_path):
+    missing = tmp_path / "nothing.mkv"
+    r = subprocess.run([sys.executable, "-m", "emdflow", "flow", str(missing), "-o", str(tmp_path / "o.avi")],
+                       env=_env(), capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines() == [f"emdflow flow: error: {missing}: no such file or directory"]
