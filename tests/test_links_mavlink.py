@@ -279,3 +279,51 @@ def test_latencies_are_reported_once(peer):
         assert link.latencies_us() == []
     finally:
         link.close()
+
+
+def test_extra_values_go_out_as_named_value_float_only_when_enabled():
+    """Issue #6 cues (expansion, time to contact, balance) ride on NAMED_VALUE_FLOAT."""
+    import os
+
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    from firmware_py.links import FlowSample, LinkConfig, open_link
+
+    for enabled in (False, True):
+        master, slave = os.openpty()
+        os.set_blocking(master, False)
+        link = open_link(LinkConfig(port=os.ttyname(slave), baud=921600, autopilot="ardupilot",
+                                    focal_length_px=300.0, extra_values=enabled))
+        try:
+            for i in range(50):  # 0.5 s of frames at 100 fps
+                link.submit(FlowSample(timestamp_us=i * 10_000, capture_host_us=i * 10_000,
+                                       flow_x=1.0, flow_y=0.0, quality=200,
+                                       extras=(("expansion", 0.02), ("ttc_s", 0.5))))
+                link.service(i * 10_000)
+            import time
+
+            time.sleep(0.05)
+            data = b""
+            while True:
+                try:
+                    chunk = os.read(master, 65536)
+                except BlockingIOError:
+                    break
+                if not chunk:
+                    break
+                data += chunk
+        finally:
+            link.close()
+            os.close(master)
+            os.close(slave)
+        parser = mavlink2.MAVLink(None)
+        msgs = [m for m in parser.parse_buffer(data) or [] if m.get_type() == "NAMED_VALUE_FLOAT"]
+        if not enabled:
+            assert msgs == []
+        else:
+            names = {m.name for m in msgs}
+            assert names == {"expansion", "ttc_s"}
+            values = {m.name: m.value for m in msgs}
+            assert abs(values["expansion"] - 0.02) < 1e-6 and abs(values["ttc_s"] - 0.5) < 1e-6
+            # 5 Hz over 0.5 s of capture time, two names: 2-3 reports each
+            assert 4 <= len(msgs) <= 6

@@ -56,6 +56,10 @@ class FlowSample:
         Image flow since the previous frame, px/frame, x right, y down.
     quality : int
         0 (no usable flow) … 255 (best).
+    extras : tuple of (str, float)
+        Named extra values (expansion rate, time to contact, balance ...) that a link may
+        send as well when ``LinkConfig.extra_values`` is on (MAVLink: NAMED_VALUE_FLOAT,
+        names of at most 10 characters).
     """
 
     timestamp_us: int
@@ -63,6 +67,7 @@ class FlowSample:
     flow_x: float
     flow_y: float
     quality: int
+    extras: tuple = ()
 
 
 @dataclass(kw_only=True)
@@ -326,8 +331,13 @@ class FlowLink:
             log.exception("%s link on %s: unexpected error in %s (continuing)", self.protocol,
                           self.config.port, where)
 
+    def _send_extras(self, sample: FlowSample) -> None:
+        """Protocol hook for ``sample.extras`` (only MAVLink has a field for them)."""
+
     def _submit(self, sample: FlowSample) -> None:
         self.stats["frames"] += 1
+        if self.config.extra_values and sample.extras:
+            self._send_extras(sample)
         self._last_submit_host_us = int(sample.capture_host_us)
         integ = self.integrator
         integ.add_frame(timestamp_us=sample.timestamp_us, flow_x_px=sample.flow_x,

@@ -31,6 +31,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from ..angular import FlowInterval
 from .base import FlowLink, LinkConfig, carry_round
+from .serial_port import host_now_us
 
 __all__ = ["MavlinkLink", "new_encoder", "pack", "MESSAGE_SETS", "WIRE_BYTES",
            "HEARTBEAT_TYPE", "encode_heartbeat"]
@@ -38,7 +39,9 @@ __all__ = ["MavlinkLink", "new_encoder", "pack", "MESSAGE_SETS", "WIRE_BYTES",
 log = logging.getLogger(__name__)
 
 #: Bytes on the wire with every field non-zero: 10 header + payload + 2 CRC (unsigned).
-WIRE_BYTES = {"HEARTBEAT": 21, "OPTICAL_FLOW": 46, "OPTICAL_FLOW_RAD": 56}
+WIRE_BYTES = {"HEARTBEAT": 21, "OPTICAL_FLOW": 46, "OPTICAL_FLOW_RAD": 56, "NAMED_VALUE_FLOAT": 30}
+#: Extra values budgeted when ``extra_values`` is on (expansion, time to contact, 2 balances).
+EXTRA_VALUES_BUDGETED = 4
 
 #: Flow messages per autopilot.
 MESSAGE_SETS = {
@@ -62,6 +65,10 @@ def pack(encoder: mavlink2.MAVLink, message) -> bytes:
     data = bytes(message.pack(encoder))
     encoder.seq = (encoder.seq + 1) % 256
     return data
+
+
+#: NAMED_VALUE_FLOAT reports per second when ``extra_values`` is on.
+EXTRAS_RATE_HZ = 5.0
 
 
 def encode_heartbeat(encoder: mavlink2.MAVLink) -> bytes:
@@ -99,6 +106,7 @@ class MavlinkLink(FlowLink):
         self._next_heartbeat_us: int | None = None
         self._heartbeat_period_us = int(1e6 / config.heartbeat_rate_hz)
         self._seen_systems: set[tuple[int, int]] = set()
+        self._next_extras_us: int | None = None
         self._distance = (float(config.ground_distance_m)
                           if config.ground_distance_m is not None and config.ground_distance_m >= 0 else -1.0)
         super().__init__(config)
@@ -116,7 +124,9 @@ class MavlinkLink(FlowLink):
         return sum(WIRE_BYTES[name] for name in self.message_set)
 
     def _reserved_bytes_per_s(self) -> float:
-        return WIRE_BYTES["HEARTBEAT"] * self.config.heartbeat_rate_hz
+        extras = (WIRE_BYTES["NAMED_VALUE_FLOAT"] * EXTRAS_RATE_HZ * EXTRA_VALUES_BUDGETED
+                  if self.config.extra_values else 0.0)
+        return WIRE_BYTES["HEARTBEAT"] * self.config.heartbeat_rate_hz + extras
 
     def _default_rate_cap(self) -> float:
         return 100.0
@@ -160,6 +170,24 @@ class MavlinkLink(FlowLink):
             log_fields["seq"] = data[4]
             out.append((name, data, log_fields))
         return out
+
+    def _send_extras(self, sample) -> None:
+        """NAMED_VALUE_FLOAT per extra value at EXTRAS_RATE_HZ (capture clock), off by default.
+
+        No standard MAVLink field carries expansion or time to contact; NAMED_VALUE_FLOAT
+        shows up in MAVProxy, QGroundControl's inspector and the autopilot's log (ArduPilot
+        logs it as NVF; Lua scripts can read it).
+        """
+        ts = int(sample.timestamp_us)
+        if self._next_extras_us is not None and ts < self._next_extras_us:
+            return
+        self._next_extras_us = ts + int(1e6 / EXTRAS_RATE_HZ)
+        now = host_now_us()
+        for name, value in sample.extras:
+            msg = self.encoder.named_value_float_encode(
+                time_boot_ms=(ts // 1000) & 0xFFFFFFFF, name=str(name)[:10].encode(), value=float(value))
+            self._enqueue_other("NAMED_VALUE_FLOAT", pack(self.encoder, msg),
+                                {"name": str(name)[:10], "value": float(value)}, now)
 
     def _send_heartbeat(self, now: int, *, first: bool = False) -> None:
         data = encode_heartbeat(self.encoder)
