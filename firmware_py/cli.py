@@ -1,0 +1,148 @@
+"""``emdflowd`` — the optical-flow appliance daemon (console script and ``python -m``).
+
+Exit codes: 0 clean stop (signal, ``--frames`` reached, demo finished); 1 runtime failure
+(no usable OpenCL device, a crash); 2 configuration or usage error (the message names the
+file and key, the source or the port). The systemd unit does not restart on 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import sys
+
+from .config import ConfigError, load_config
+
+__all__ = ["main", "build_parser", "setup_logging"]
+
+EXIT_OK, EXIT_FAILURE, EXIT_CONFIG = 0, 1, 2
+
+# syslog priorities for journald's "<N>" prefix on stderr lines
+_PRIORITY = {logging.DEBUG: 7, logging.INFO: 6, logging.WARNING: 4, logging.ERROR: 3, logging.CRITICAL: 2}
+
+
+class _JournalFormatter(logging.Formatter):
+    """``<6>emdflowd: message`` — journald reads the priority and adds the timestamp."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = super().format(record)
+        prefix = f"<{_PRIORITY.get(record.levelno, 6)}>"
+        return "\n".join(prefix + line for line in text.splitlines())
+
+
+def setup_logging(level: str = "INFO") -> None:
+    """Log to stderr: journald format under systemd (``$JOURNAL_STREAM``), else timestamped."""
+    handler = logging.StreamHandler(sys.stderr)
+    if os.environ.get("JOURNAL_STREAM"):
+        handler.setFormatter(_JournalFormatter("%(name)s: %(message)s"))
+    else:
+        handler.setFormatter(logging.Formatter("%(asctime)s.%(msecs)03d %(levelname)-7s %(name)s: %(message)s",
+                                               "%H:%M:%S"))
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(level.upper())
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="emdflowd",
+        description="Insect-vision optical flow from a camera to a flight controller's serial port.",
+        epilog="Run 'emdflowd --demo' first: a synthetic flight, no hardware. "
+               "Every option can also be set in the --config file (see deploy/emdflow.toml).",
+    )
+    p.add_argument("--config", metavar="FILE", help="TOML configuration file (flags override it)")
+    p.add_argument("--log-level", metavar="LEVEL", type=str.upper,
+                   choices=("DEBUG", "INFO", "WARNING", "ERROR"), help="DEBUG, INFO, WARNING or ERROR")
+    p.add_argument("--source", metavar="URI",
+                   help="v4l2:/dev/videoN | v4l2:N | depthai:CAM_B | depthai-replay:PATH | "
+                        "video:PATH | synthetic:[texture=NAME,u=PX,v=PX,...]")
+    p.add_argument("--serial", metavar="PORT", help="serial port to the flight controller")
+    p.add_argument("--baud", metavar="N", type=int, help="baud rate (default 115200)")
+    p.add_argument("--autopilot", choices=("ardupilot", "px4", "inav", "both"),
+                   help="ardupilot: OPTICAL_FLOW, px4: OPTICAL_FLOW_RAD, inav: MSP, both: both MAVLink messages")
+    p.add_argument("--protocol", choices=("mavlink", "msp"),
+                   help="force the wire protocol (mavlink sends both flow messages)")
+    p.add_argument("--focal-length-px", metavar="F", type=float,
+                   help="focal length at the processed resolution, px (cameras need it or a field of view)")
+    p.add_argument("--frames", metavar="N", type=int, help="stop after N processed frames, exit 0")
+    p.add_argument("--realtime", action="store_true", help="pace file and synthetic sources to their fps")
+    p.add_argument("--demo", action="store_true",
+                   help="synthetic flight -> engine -> MAVLink into a pseudo-terminal, read back and shown live")
+    return p
+
+
+def _apply_flags(config, args) -> None:
+    """Command-line flags override the file; each is validated like the file's key."""
+    overrides = [
+        ("source", "uri", args.source), ("link", "port", args.serial), ("link", "baud", args.baud),
+        ("link", "autopilot", args.autopilot), ("link", "protocol", args.protocol),
+        ("optics", "focal_length_px", args.focal_length_px), ("daemon", "log_level", args.log_level),
+    ]
+    for section, key, value in overrides:
+        if value is not None:
+            config.set(section, key, value, origin="command line")
+    if args.realtime:
+        config.source.realtime = True
+    if args.frames is not None:
+        if args.frames < 1:
+            raise ConfigError(f"command line: --frames {args.frames}: must be >= 1")
+        config.frames = args.frames
+    config.validate()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``emdflowd``; returns the exit code."""
+    args = build_parser().parse_args(argv)
+    # The demo's table is the output: only warnings and errors interleave unless asked.
+    setup_logging(args.log_level or ("WARNING" if args.demo else "INFO"))
+    log = logging.getLogger("emdflowd")
+    if args.demo:
+        from .demo import run_demo
+
+        return run_demo(frames=args.frames, config_path=args.config, source=args.source)
+    try:
+        config = load_config(args.config)
+        _apply_flags(config, args)
+        if not config.link.port:
+            raise ConfigError(f"{config.path or 'configuration'}: no serial port: give --serial PORT "
+                              "or [link] port (or try 'emdflowd --demo')")
+    except ConfigError as exc:
+        log.error("%s", exc)
+        return EXIT_CONFIG
+    setup_logging(config.daemon.log_level)
+    return run_daemon(config)
+
+
+def run_daemon(config, *, daemon=None) -> int:
+    """Run :class:`~firmware_py.daemon.Daemon` with signal handling; returns the exit code."""
+    from .daemon import Daemon
+    from .sources import SourceError
+
+    log = logging.getLogger("emdflowd")
+    daemon = daemon or Daemon(config)
+
+    def _stop(signum, _frame):
+        log.info("%s: stopping", signal.Signals(signum).name)
+        daemon.stop()
+
+    previous = {sig: signal.signal(sig, _stop) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        return daemon.run()
+    except (ConfigError, SourceError) as exc:
+        log.error("%s", exc)
+        return EXIT_CONFIG
+    except RuntimeError as exc:  # e.g. no OpenCL platform: the message says how to install one
+        log.error("%s", exc)
+        return EXIT_FAILURE
+    except Exception:  # a bug: the traceback goes to the journal, systemd restarts us
+        log.exception("unexpected error; exiting")
+        return EXIT_FAILURE
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,242 @@
+"""The daemon's configuration: a TOML file (stdlib ``tomllib``) plus command-line overrides.
+
+Every key is documented in the commented example ``deploy/emdflow.toml``. An unknown
+section or key, or a value of the wrong type or out of range, is a :class:`ConfigError`
+whose message names the file and the ``[section] key``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+import typing
+from pathlib import Path
+
+__all__ = ["Config", "SourceConfig", "OpticsConfig", "EngineConfig", "LinkConfigSection",
+           "DaemonConfig", "ConfigError", "load_config", "SECTIONS"]
+
+
+class ConfigError(ValueError):
+    """A configuration problem; the message names the file and key."""
+
+
+def _opt(default=None, *, choices=None, minimum=None, maximum=None, doc=""):
+    return dataclasses.field(default=default, metadata=dict(choices=choices, minimum=minimum,
+                                                            maximum=maximum, doc=doc))
+
+
+@dataclasses.dataclass
+class SourceConfig:
+    """``[source]``: where frames come from and at which processing resolution."""
+
+    uri: str = _opt("synthetic:", doc="frame source URI")
+    width: int | None = _opt(None, minimum=16, maximum=4096, doc="processing width, px")
+    height: int | None = _opt(None, minimum=16, maximum=4096, doc="processing height, px")
+    fps: float | None = _opt(None, minimum=1.0, maximum=1000.0, doc="requested frame rate, frames/s")
+    pixel_format: str = _opt("GREY", choices=("GREY", "YUYV", "MJPG"), doc="V4L2 pixel format")
+    buffer_count: int = _opt(2, minimum=1, maximum=10, doc="V4L2 driver buffers")
+    exposure_us: float | None = _opt(None, minimum=1.0, maximum=1_000_000.0, doc="manual exposure, µs")
+    gain: float | None = _opt(None, minimum=0.0, doc="manual gain (V4L2 units, DepthAI ISO)")
+    loop: bool = _opt(False, doc="rewind files at their end")
+    realtime: bool = _opt(False, doc="pace file and synthetic sources to their fps")
+
+
+@dataclasses.dataclass
+class OpticsConfig:
+    """``[optics]``: lens and mounting, at the processing resolution."""
+
+    focal_length_px: float | None = _opt(None, minimum=1.0, maximum=100_000.0, doc="focal length, px")
+    horizontal_fov_deg: float | None = _opt(None, minimum=1.0, maximum=179.0, doc="horizontal field of view, deg")
+    mounting_rotation_deg: int = _opt(0, choices=(0, 90, 180, 270), doc="sensor rotation, deg")
+    mounting_mirror: bool = _opt(False, doc="mirrored image")
+
+
+@dataclasses.dataclass
+class EngineConfig:
+    """``[engine]``: the flow estimator."""
+
+    backend: str = _opt("opencl", choices=("opencl", "numpy"), doc="estimator backend")
+    reset_after_gap_s: float = _opt(0.5, minimum=0.01, maximum=60.0, doc="reset after this gap, s")
+
+
+@dataclasses.dataclass
+class LinkConfigSection:
+    """``[link]``: the serial link to the flight controller (see ``firmware_py.links``)."""
+
+    port: str | None = _opt(None, doc="serial device")
+    baud: int = _opt(115200, minimum=1200, maximum=4_000_000, doc="baud rate")
+    autopilot: str | None = _opt(None, choices=("ardupilot", "px4", "inav", "both"), doc="autopilot")
+    protocol: str | None = _opt(None, choices=("mavlink", "msp"), doc="wire protocol")
+    sysid: int = _opt(1, minimum=1, maximum=255, doc="MAVLink system id")
+    compid: int = _opt(158, minimum=1, maximum=255, doc="MAVLink component id")
+    sensor_id: int = _opt(0, minimum=0, maximum=255, doc="flow sensor id")
+    message_rate_hz: float | None = _opt(None, minimum=1.0, maximum=1000.0, doc="flow message rate")
+    heartbeat_rate_hz: float = _opt(1.0, minimum=0.1, maximum=50.0, doc="heartbeat rate")
+    ground_distance_m: float | None = _opt(None, minimum=0.0, maximum=1000.0, doc="fixed ground distance, m")
+    message_log: str | None = _opt(None, doc="CSV / JSON-lines log of sent messages")
+    extra_values: bool = _opt(False, doc="send extra named values")
+
+
+@dataclasses.dataclass
+class DaemonConfig:
+    """``[daemon]``: loop, logging and recovery."""
+
+    log_level: str = _opt("INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"), doc="log level")
+    log_interval_s: float = _opt(10.0, minimum=0.5, maximum=3600.0, doc="status line period, s")
+    threading: str = _opt("auto", choices=("auto", "single", "capture-thread"), doc="loop structure")
+    reopen_backoff_s: float = _opt(0.5, minimum=0.05, maximum=60.0, doc="first reopen delay, s")
+    reopen_backoff_max_s: float = _opt(10.0, minimum=0.1, maximum=600.0, doc="longest reopen delay, s")
+    blind_after_s: float = _opt(0.25, minimum=0.02, maximum=10.0, doc="no frame for this long = blind, s")
+
+
+SECTIONS: dict[str, type] = {
+    "source": SourceConfig,
+    "optics": OpticsConfig,
+    "engine": EngineConfig,
+    "link": LinkConfigSection,
+    "daemon": DaemonConfig,
+}
+
+
+@dataclasses.dataclass
+class Config:
+    """The whole configuration; ``path`` is the file it came from (None: defaults only)."""
+
+    source: SourceConfig = dataclasses.field(default_factory=SourceConfig)
+    optics: OpticsConfig = dataclasses.field(default_factory=OpticsConfig)
+    engine: EngineConfig = dataclasses.field(default_factory=EngineConfig)
+    link: LinkConfigSection = dataclasses.field(default_factory=LinkConfigSection)
+    daemon: DaemonConfig = dataclasses.field(default_factory=DaemonConfig)
+    path: str | None = None
+    frames: int | None = None  # command line only: stop after this many processed frames
+
+    def set(self, section: str, key: str, value, *, origin: str = "command line") -> None:
+        """Validate and set one value (used for command-line overrides)."""
+        obj = getattr(self, section)
+        where = f"{origin}: [{section}] {key}"
+        value = _check(type(obj), key, value, where)
+        if (section, key) == ("source", "uri"):
+            _check_uri(value, where)
+        setattr(obj, key, value)
+
+    def link_autopilot(self) -> str:
+        """The autopilot whose message set to send: the configured one, else from the
+        protocol (``mavlink`` alone: both flow messages; ``msp``: INAV), else ArduPilot."""
+        if self.link.autopilot:
+            return self.link.autopilot
+        return {"mavlink": "both", "msp": "inav"}.get(self.link.protocol, "ardupilot")
+
+    def validate(self) -> None:
+        """Checks across keys (after the file, and again after command-line overrides)."""
+        where = self.path or "configuration"
+        if (self.source.width is None) != (self.source.height is None):
+            raise ConfigError(f"{where}: [source] width and height must be given together")
+        if self.daemon.reopen_backoff_max_s < self.daemon.reopen_backoff_s:
+            raise ConfigError(f"{where}: [daemon] reopen_backoff_max_s must be >= reopen_backoff_s")
+
+    def focal_length_px(self, width: int, default: float | None) -> float:
+        """Focal length at the processing width, px: explicit value, else from the field of
+        view, else the source's documented default; ConfigError when none applies."""
+        o = self.optics
+        if o.focal_length_px is not None:
+            return float(o.focal_length_px)
+        if o.horizontal_fov_deg is not None:
+            return width / 2.0 / math.tan(math.radians(o.horizontal_fov_deg) / 2.0)
+        if default is not None:
+            return float(default)
+        raise ConfigError(
+            f"{self.path or 'configuration'}: source {self.source.uri!r} is a camera: give "
+            "--focal-length-px F or [optics] focal_length_px / horizontal_fov_deg "
+            "(e.g. horizontal_fov_deg = 71.9 for an OAK-D mono camera)"
+        )
+
+
+def _base_type(tp):
+    """``int | None`` → (int, True); ``str`` → (str, False)."""
+    args = typing.get_args(tp)
+    if args:
+        inner = [a for a in args if a is not type(None)]
+        return inner[0], type(None) in args
+    return tp, False
+
+
+def _check(cls: type, key: str, value, where: str):
+    hints = typing.get_type_hints(cls)
+    field = {f.name: f for f in dataclasses.fields(cls)}[key]
+    base, optional = _base_type(hints[key])
+    meta = field.metadata
+    if value is None:
+        if optional:
+            return None
+        raise ConfigError(f"{where}: a value is required")
+    if base is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where} = {value!r}: expected true or false")
+    elif base is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where} = {value!r}: expected an integer")
+    elif base is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise ConfigError(f"{where} = {value!r}: expected a number")
+        value = float(value)
+    elif base is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where} = {value!r}: expected a string")
+        if meta.get("choices") and key in ("pixel_format", "log_level"):
+            value = value.upper()
+        elif meta.get("choices"):
+            value = value.lower()
+    if meta.get("choices") and value not in meta["choices"]:
+        raise ConfigError(f"{where} = {value!r}: expected one of {', '.join(map(str, meta['choices']))}")
+    if meta.get("minimum") is not None and value < meta["minimum"]:
+        raise ConfigError(f"{where} = {value!r}: must be >= {meta['minimum']}")
+    if meta.get("maximum") is not None and value > meta["maximum"]:
+        raise ConfigError(f"{where} = {value!r}: must be <= {meta['maximum']}")
+    return value
+
+
+def _check_uri(uri: str, where: str) -> None:
+    from .sources import parse_uri
+
+    try:
+        parse_uri(uri)
+    except ValueError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+
+
+def config_from_dict(data: dict, *, origin: str = "configuration") -> Config:
+    """Build a validated :class:`Config` from parsed TOML; errors name ``origin`` and key."""
+    config = Config(path=origin)
+    for section, values in data.items():
+        if section not in SECTIONS:
+            raise ConfigError(f"{origin}: unknown section [{section}] (known: {', '.join(SECTIONS)})")
+        if not isinstance(values, dict):
+            raise ConfigError(f"{origin}: {section} must be a [{section}] table")
+        cls = SECTIONS[section]
+        known = {f.name for f in dataclasses.fields(cls)}
+        for key, value in values.items():
+            if key not in known:
+                raise ConfigError(
+                    f"{origin}: unknown key [{section}] {key} (known: {', '.join(sorted(known))})"
+                )
+            config.set(section, key, value, origin=origin)
+    config.validate()
+    return config
+
+
+def load_config(path: str | Path | None) -> Config:
+    """Read and validate a TOML configuration file (None: all defaults)."""
+    if path is None:
+        return Config()
+    path = Path(path)
+    try:
+        with path.open("rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: configuration file not found") from None
+    except PermissionError:
+        raise ConfigError(f"{path}: permission denied") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    return config_from_dict(data, origin=str(path))

@@ -1,0 +1,191 @@
+"""``depthai:CAM_B`` — a Luxonis OAK mono camera through depthai 3.x, and
+``depthai-replay:PATH`` — the same host-side code fed by ``ReplayVideo`` from a file.
+
+Both build a pipeline whose last output delivers GRAY8 ``ImgFrame`` messages at the
+processing resolution into a host queue; :meth:`DepthAISource.read` is the same for both.
+
+- camera: ``Camera.build(socket, sensorFps=fps).requestOutput((w, h), GRAY8, fps=fps)``;
+  the timestamp is the device's capture time (``getTimestampDevice``), the latency start is
+  the same instant in host time (``getTimestamp``, which depthai syncs to the host's
+  monotonic clock), so USB transfer is counted;
+- replay (no device, ``Pipeline(False)``): ``ReplayVideo`` (GRAY8) → ``ImageManip`` run on
+  the host (resize to w×h, GRAY8); the timestamp is ``sequence_number / file fps``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from .base import Frame, FrameSource, SourceError, host_us
+from .video import probe_video
+
+__all__ = ["DepthAISource", "MONO_SOCKETS"]
+
+log = logging.getLogger("emdflowd.depthai")
+
+MONO_SOCKETS = ("CAM_B", "CAM_C")
+# Replay runs as fast as the host takes frames unless --realtime; ReplayVideo paces itself
+# to its fps, so "as fast as possible" is a high fps plus a blocking queue (back-pressure).
+_UNPACED_FPS = 10_000.0
+_GET_TIMEOUT_S = 2.0
+
+
+def _import_depthai():
+    try:
+        import depthai
+    except ImportError as exc:  # pragma: no cover - depends on the install
+        raise SourceError(
+            f"depthai is not installed ({exc}); install it with: pip install 'emdflow[depthai]'"
+        ) from None
+    return depthai
+
+
+class DepthAISource(FrameSource):
+    """An OAK mono camera (``replay_path=None``) or a DepthAI replay of a video file.
+
+    Parameters
+    ----------
+    socket : str
+        ``CAM_B`` or ``CAM_C`` (the OAK-D left/right mono cameras); ignored for replay.
+    width, height : int or None
+        Processing resolution, px (replay: None keeps the file's size).
+    fps : float
+        Camera frame rate, frames/s (replay: the file's own rate is used).
+    exposure_us : float or None
+        Manual exposure, µs; None keeps auto exposure (camera only).
+    gain : float or None
+        Manual sensitivity as ISO (100..1600) when ``exposure_us`` is set (camera only).
+    replay_path : str or None
+        Video file for ``depthai-replay:``.
+    loop : bool
+        Replay: rewind at the end (``ReplayVideo.setLoop``).
+    realtime : bool
+        Replay: release frames at the file's rate.
+    """
+
+    def __init__(self, socket: str = "CAM_B", *, width: int | None = 320, height: int | None = 240,
+                 fps: float = 100.0, exposure_us: float | None = None, gain: float | None = None,
+                 replay_path: str | None = None, loop: bool = False, realtime: bool = False):
+        _import_depthai()  # a missing package is a configuration error, not a lost camera
+        self.replay_path = replay_path
+        self.live = replay_path is None
+        self.loop, self.realtime = bool(loop), bool(realtime)
+        self.exposure_us, self.gain = exposure_us, gain
+        if self.live:
+            socket = socket.upper()
+            if socket not in MONO_SOCKETS:
+                raise SourceError(f"depthai:{socket}: expected one of {', '.join(MONO_SOCKETS)} (OAK mono cameras)")
+            self.uri = f"depthai:{socket}"
+            self.socket = socket
+            self.width, self.height, self.fps = int(width or 320), int(height or 240), float(fps)
+        else:
+            self.uri = f"depthai-replay:{replay_path}"
+            native_w, native_h, file_fps = probe_video(replay_path)
+            if not (file_fps > 0 and math.isfinite(file_fps)):
+                file_fps = float(fps)
+            self.width, self.height, self.fps = int(width or native_w), int(height or native_h), float(file_fps)
+            self.default_focal_length_px = float(self.width)
+        self._pipeline = None
+        self._queue = None
+        self._index = 0
+        self._period_us = 1e6 / self.fps
+
+    # -- pipeline construction: the only part that differs between camera and replay --
+    def _build_camera(self, dai, pipeline):
+        cam = pipeline.create(dai.node.Camera).build(getattr(dai.CameraBoardSocket, self.socket), sensorFps=self.fps)
+        if self.exposure_us is not None:
+            iso = int(self.gain) if self.gain is not None else 400
+            cam.initialControl.setManualExposure(int(self.exposure_us), iso)
+        return cam.requestOutput((self.width, self.height), dai.ImgFrame.Type.GRAY8, fps=self.fps)
+
+    def _build_replay(self, dai, pipeline):
+        replay = pipeline.create(dai.node.ReplayVideo)
+        replay.setReplayVideoFile(self.replay_path)
+        replay.setOutFrameType(dai.ImgFrame.Type.GRAY8)
+        replay.setLoop(self.loop)
+        replay.setFps(self.fps if self.realtime else _UNPACED_FPS)
+        manip = pipeline.create(dai.node.ImageManip)
+        manip.setRunOnHost(True)
+        manip.initialConfig.setOutputSize(self.width, self.height)
+        manip.initialConfig.setFrameType(dai.ImgFrame.Type.GRAY8)
+        replay.out.link(manip.inputImage)
+        return manip.out
+
+    def open(self) -> None:
+        self.close()
+        dai = _import_depthai()
+        try:
+            if self.live:
+                pipeline = dai.Pipeline()  # connects to the first OAK found
+                output = self._build_camera(dai, pipeline)
+                # Live camera: keep only the newest frame, never queue into latency.
+                queue = output.createOutputQueue(maxSize=1, blocking=False)
+            else:
+                pipeline = dai.Pipeline(False)  # host only, no device
+                output = self._build_replay(dai, pipeline)
+                # File: back-pressure instead of dropping.
+                queue = output.createOutputQueue(maxSize=2, blocking=True)
+            pipeline.start()
+        except SourceError:
+            raise
+        except Exception as exc:
+            hint = " (is an OAK connected, and the udev rule for 03e7 installed?)" if self.live else ""
+            raise SourceError(f"{self.uri}: cannot start the DepthAI pipeline: {exc}{hint}") from None
+        self._pipeline, self._queue = pipeline, queue
+        self._index = 0
+
+    def read(self) -> Frame | None:
+        if self._queue is None:
+            raise SourceError(f"{self.uri}: not open")
+        t0 = host_us()
+        try:
+            msg = self._queue.get(timeout=_timedelta(_GET_TIMEOUT_S))
+        except Exception as exc:
+            # The queue closes when a replay reaches the end of its file (the pipeline may
+            # still report running for a moment), or when the device goes away.
+            if not self.live:
+                log.debug("%s: queue closed (%s): end of stream", self.uri, exc)
+                return None
+            raise SourceError(f"{self.uri}: {exc or 'pipeline stopped'}") from None
+        if msg is None:
+            if not self.live and not self._pipeline.isRunning():
+                return None
+            raise SourceError(f"{self.uri}: no frame for {_GET_TIMEOUT_S:g} s")
+        self.waited_us = host_us() - t0  # queue wait (replay pacing), not capture work
+        return self._to_frame(msg)
+
+    def _to_frame(self, msg) -> Frame:
+        received = host_us()
+        image = msg.getFrame()
+        if image.ndim == 3:
+            image = image[:, :, 0]
+        image = np.ascontiguousarray(image, dtype=np.uint8)
+        index = int(msg.getSequenceNum())
+        if self.live:
+            stamp = int(msg.getTimestampDevice().total_seconds() * 1e6)
+            captured = int(msg.getTimestamp().total_seconds() * 1e6)
+            if not (0 <= received - captured < 2_000_000):
+                captured = received
+        else:
+            stamp = int(round(index * self._period_us))
+            captured = received
+        self._index += 1
+        return Frame(image, stamp, captured, index)
+
+    def close(self) -> None:
+        if self._pipeline is not None:
+            try:
+                self._pipeline.stop()
+            except Exception as exc:  # closing must never raise
+                log.debug("%s: pipeline stop: %s", self.uri, exc)
+            self._pipeline = None
+            self._queue = None
+
+
+def _timedelta(seconds: float):
+    import datetime
+
+    return datetime.timedelta(seconds=seconds)

@@ -1,0 +1,176 @@
+"""``synthetic:`` — a camera flight over a real photograph with known image motion.
+
+URI options (comma separated ``key=value`` after ``synthetic:``; all optional):
+
+``texture``  ground photograph: a name from :data:`emdflow.synthetic.TEXTURES` or an image
+             file path (default ``gravel``);
+``u``, ``v`` constant image flow of the ground, px/frame, x right / y down; giving either
+             selects a straight flight;
+``circle``   speed of a circular flight, px/frame (default 2.0; used when neither ``u`` nor
+             ``v`` is given): the flow turns once per ``period``;
+``period``   duration of one circle, s (default 4.0);
+``noise``    sensor noise sigma, gray levels (default 2.0);
+``seed``     noise seed (default 0);
+``supersample`` rendering oversampling per axis (default 2).
+
+The frame rate and size come from the configuration (default 320×240 at 100 frames/s), the
+timestamps are ``index / fps``, and the default focal length is the frame width in px.
+A circular flight returns to its start after one period, so its frames are rendered once and
+then replayed from a buffer: after the first circle the source costs nothing.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .base import Frame, FrameSource, Pacer, SourceError, host_us
+
+__all__ = ["SyntheticSource", "SYNTHETIC_DEFAULTS"]
+
+#: Defaults of the URI options (documented in the module docstring and docs/daemon.md).
+SYNTHETIC_DEFAULTS = {
+    "texture": "gravel",
+    "u": None,
+    "v": None,
+    "circle": 2.0,
+    "period": 4.0,
+    "noise": 2.0,
+    "seed": 0,
+    "supersample": 2,
+}
+_MAX_CACHED_FRAMES = 1000  # 320×240 → 77 MB at most; longer circles are rendered live
+
+
+def parse_options(text: str) -> dict:
+    """Parse ``key=value,...`` into typed options; raise ValueError naming a bad key."""
+    options = dict(SYNTHETIC_DEFAULTS)
+    if not text:
+        return options
+    for item in text.split(","):
+        if not item.strip():
+            continue
+        key, sep, value = item.partition("=")
+        key = key.strip()
+        if not sep or key not in SYNTHETIC_DEFAULTS:
+            raise ValueError(
+                f"synthetic option {item!r}: expected key=value with key one of "
+                f"{', '.join(SYNTHETIC_DEFAULTS)}"
+            )
+        value = value.strip()
+        try:
+            if key == "texture":
+                options[key] = value
+            elif key in ("seed", "supersample"):
+                options[key] = int(value)
+            else:
+                options[key] = float(value)
+        except ValueError:
+            raise ValueError(f"synthetic option {key}={value!r}: not a number") from None
+    if options["supersample"] < 1:
+        raise ValueError(f"synthetic option supersample={options['supersample']}: must be >= 1")
+    if options["period"] <= 0:
+        raise ValueError(f"synthetic option period={options['period']}: must be > 0")
+    return options
+
+
+class SyntheticSource(FrameSource):
+    """Frames of a synthetic camera flight (see the module docstring for the options).
+
+    Parameters
+    ----------
+    options : str
+        The part of the URI after ``synthetic:``.
+    width, height : int
+        Frame size, px.
+    fps : float
+        Frame rate of the flight's clock, frames/s.
+    realtime : bool
+        Release frames at ``fps`` instead of as fast as they are rendered.
+    """
+
+    live = False
+
+    def __init__(self, options: str = "", *, width: int = 320, height: int = 240,
+                 fps: float = 100.0, realtime: bool = False):
+        from emdflow.synthetic import CameraFlight, load_texture
+
+        self.uri = f"synthetic:{options}"
+        try:
+            self.options = parse_options(options)
+            load_texture(self.options["texture"])
+        except ValueError as exc:
+            raise SourceError(f"source {self.uri!r}: {exc}") from None
+        self.width, self.height, self.fps = int(width), int(height), float(fps)
+        self.default_focal_length_px = float(self.width)
+        self.realtime = bool(realtime)
+        o = self.options
+        self.straight = o["u"] is not None or o["v"] is not None
+        common = dict(width=self.width, height=self.height, noise_sigma=o["noise"],
+                      supersample=o["supersample"])
+        if self.straight:
+            self._flow = (o["u"] or 0.0, o["v"] or 0.0)
+            self._flight = CameraFlight(o["texture"], flow=self._flow, seed=o["seed"], **common)
+            self.loop_frames = 0
+        else:
+            self.loop_frames = max(3, int(round(o["period"] * self.fps)))
+            self._flight_kwargs = dict(texture=o["texture"], flow=(0.0, 0.0), **common)
+            self._positions = self._circle_positions()
+            cacheable = self.loop_frames <= _MAX_CACHED_FRAMES
+            self._cache: list[np.ndarray | None] | None = [None] * self.loop_frames if cacheable else None
+        self._pacer = Pacer(self.fps) if realtime else None
+        self._index = 0
+        self._period_us = 1e6 / self.fps
+
+    def truth(self, index: int) -> tuple[float, float]:
+        """Image flow of the ground from frame ``index − 1`` to ``index``, px/frame (x, y)."""
+        if self.straight:
+            return self._flow
+        speed = self.options["circle"]
+        phase = 2.0 * math.pi * (index % self.loop_frames) / self.loop_frames
+        return speed * math.cos(phase), speed * math.sin(phase)
+
+    def _circle_positions(self) -> np.ndarray:
+        # Ground position under the image centre for each frame of one loop: the camera
+        # moves against the image flow. The flows of one period sum to zero, so it closes.
+        from emdflow.synthetic import load_texture
+
+        th, tw = load_texture(self.options["texture"]).shape
+        flows = np.array([self.truth(i) for i in range(self.loop_frames)])
+        steps = np.cumsum(flows, axis=0)
+        steps -= steps[-1]  # frame 0 (= frame loop_frames) sits at the start
+        return np.array([tw / 2.0, th / 2.0]) - steps
+
+    def _render(self, index: int) -> np.ndarray:
+        from emdflow.synthetic import CameraFlight
+
+        if self.straight:
+            return self._flight.render(index)
+        k = index % self.loop_frames
+        if self._cache is not None and self._cache[k] is not None:
+            return self._cache[k]
+        cx, cy = self._positions[k]
+        flight = CameraFlight(start=(float(cx), float(cy)), seed=self.options["seed"] + k,
+                              **self._flight_kwargs)
+        image = flight.render(0)
+        image.setflags(write=False)  # shared by every loop
+        if self._cache is not None:
+            self._cache[k] = image
+        return image
+
+    def open(self) -> None:
+        self._index = 0
+        if self._pacer:
+            self._pacer.restart()
+
+    def read(self) -> Frame | None:
+        due_us = None
+        if self._pacer:
+            self._index, self.waited_us, due_us = self._pacer.next(self._index)
+        image = self._render(self._index)
+        # Paced: captured when due (like a camera); else when rendered.
+        captured = due_us if due_us is not None else host_us()
+        frame = Frame(image, int(round(self._index * self._period_us)), captured, self._index)
+        self._index += 1
+        return frame

@@ -1,0 +1,171 @@
+"""Helpers shared by the daemon tests: real video files, real ptys, real parsers."""
+
+from __future__ import annotations
+
+import os
+import select
+import subprocess
+import sys
+import tempfile
+import time
+import tty
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def flight_frames(count: int, *, flow=(2.0, 0.0), width=160, height=120, texture="gravel", seed=0):
+    """Frames of a straight camera flight with known image flow (px/frame)."""
+    from emdflow.synthetic import CameraFlight
+
+    flight = CameraFlight(texture, width=width, height=height, flow=flow, noise_sigma=1.0,
+                          supersample=2, seed=seed)
+    return flight.render_many(count)
+
+
+def write_video(path: Path, frames: np.ndarray, fps: float = 50.0) -> Path:
+    """Write gray frames losslessly (FFV1); OpenCV reads them back bit-exact."""
+    h, w = frames.shape[1:]
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), fps, (w, h), isColor=False)
+    assert writer.isOpened(), f"cannot write {path}"
+    for frame in frames:
+        writer.write(frame)
+    writer.release()
+    return Path(path)
+
+
+class PtyPair:
+    """A pseudo-terminal: the daemon opens ``path``; the test reads ``master``."""
+
+    def __init__(self):
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)  # no echo or line discipline on the bytes
+        self.path = os.ttyname(self.slave)
+        self.buffer = bytearray()
+
+    def read_for(self, seconds: float) -> bytes:
+        """Read everything that arrives within ``seconds``."""
+        end = time.monotonic() + seconds
+        while (left := end - time.monotonic()) > 0:
+            ready, _, _ = select.select([self.master], [], [], min(left, 0.05))
+            if ready:
+                try:
+                    self.buffer += os.read(self.master, 65536)
+                except OSError:
+                    time.sleep(0.01)
+        return bytes(self.buffer)
+
+    def close(self):
+        for fd in (self.master, self.slave):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+
+class Drain:
+    """Reads a pty master in a background thread so the writer never blocks."""
+
+    def __init__(self, fd: int):
+        import threading
+
+        self.fd = fd
+        self.data = bytearray()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self):
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self.fd], [], [], 0.05)
+            if ready:
+                try:
+                    self.data += os.read(self.fd, 65536)
+                except OSError:
+                    time.sleep(0.02)
+
+    def stop(self) -> bytes:
+        self._stop.set()
+        self._thread.join(2.0)
+        return bytes(self.data)
+
+
+def parse_mavlink(data: bytes):
+    """All MAVLink messages in ``data`` with valid CRC, parsed by pymavlink."""
+    from pymavlink.dialects.v20 import common as mavlink
+
+    parser = mavlink.MAVLink(None)
+    parser.robust_parsing = True
+    return [m for m in (parser.parse_buffer(data) or []) if m.get_type() != "BAD_DATA"]
+
+
+def _crc8_dvb_s2(data: bytes) -> int:
+    crc = 0
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0xD5) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
+    return crc
+
+
+def parse_msp_v2(data: bytes):
+    """(function, payload) of every MSP v2 frame with a valid CRC (an independent decoder)."""
+    frames = []
+    i = 0
+    while True:
+        i = data.find(b"$X", i)
+        if i < 0 or i + 8 > len(data):
+            return frames
+        flags, function, size = data[i + 3], int.from_bytes(data[i + 4:i + 6], "little"), \
+            int.from_bytes(data[i + 6:i + 8], "little")
+        end = i + 8 + size
+        if end >= len(data):
+            return frames
+        if _crc8_dvb_s2(data[i + 3:end]) == data[end]:
+            frames.append((function, data[i + 8:end]))
+            i = end + 1
+        else:
+            i += 2
+
+
+def _env(extra):
+    # Inherit PYTHONPATH: the tree when run from it, the installed package in CI.
+    full_env = dict(os.environ)
+    full_env.update(extra or {})
+    return full_env
+
+
+def run_cli(args, *, timeout=120, env=None) -> subprocess.CompletedProcess:
+    """Run ``python -m firmware_py.cli ARGS`` (the emdflowd entry point) to completion.
+
+    The working directory is neutral so that ``-m`` does not pick up a checkout in the
+    current directory instead of the installed package (CI tests the installed one).
+    """
+    return subprocess.run([sys.executable, "-m", "firmware_py.cli", *map(str, args)],
+                          capture_output=True, text=True, timeout=timeout, env=_env(env),
+                          cwd=tempfile.gettempdir())
+
+
+def start_cli(args, *, env=None) -> subprocess.Popen:
+    """Start ``python -m firmware_py.cli ARGS`` without waiting."""
+    return subprocess.Popen([sys.executable, "-m", "firmware_py.cli", *map(str, args)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(env),
+                            cwd=tempfile.gettempdir())
+
+
+def opencl_available() -> bool:
+    try:
+        import emdflow
+
+        return bool(emdflow.opencl_devices())
+    except Exception:
+        return False
+
+
+def engine_backend() -> str:
+    """Engine backend for process-level tests: OpenCL where a platform exists (CI installs
+    PoCL), else the numpy reference; ``EMDFLOW_TEST_BACKEND`` overrides."""
+    return os.environ.get("EMDFLOW_TEST_BACKEND") or ("opencl" if opencl_available() else "numpy")

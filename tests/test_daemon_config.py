@@ -1,0 +1,126 @@
+"""Configuration: the example file, errors that name key and file, flag overrides."""
+
+from __future__ import annotations
+
+import os
+import sys
+import dataclasses
+import math
+import re
+
+import pytest
+
+from firmware_py.cli import _apply_flags, build_parser
+from firmware_py.config import SECTIONS, Config, ConfigError, load_config
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # shared helpers
+from daemon_util import REPO, run_cli  # noqa: E402
+
+EXAMPLE = REPO / "deploy" / "emdflow.toml"
+
+
+def test_example_config_loads_and_lists_every_key():
+    config = load_config(EXAMPLE)
+    assert config.source.uri == "v4l2:/dev/video0"
+    assert config.link.port == "/dev/serial0"
+    text = EXAMPLE.read_text()
+    for section, cls in SECTIONS.items():
+        assert re.search(rf"^\[{section}\]", text, re.M), section
+        body = text.split(f"[{section}]", 1)[1].split("\n[", 1)[0]
+        for field in dataclasses.fields(cls):
+            # present as a key, or as a commented-out example of one
+            assert re.search(rf"^#?\s*{field.name}\s*=", body, re.M), f"[{section}] {field.name} undocumented"
+
+
+def _write(tmp_path, text):
+    path = tmp_path / "emdflow.toml"
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.parametrize("text, needle", [
+    ("[link]\nbaudrate = 9600\n", "unknown key [link] baudrate"),
+    ("[camera]\nuri = 'x'\n", "unknown section [camera]"),
+    ("[link]\nbaud = 'fast'\n", "[link] baud = 'fast': expected an integer"),
+    ("[link]\nbaud = 300\n", "[link] baud = 300: must be >= 1200"),
+    ("[link]\nautopilot = 'betaflight'\n", "[link] autopilot = 'betaflight': expected one of"),
+    ("[engine]\nbackend = 'cuda'\n", "[engine] backend = 'cuda'"),
+    ("[optics]\nmounting_rotation_deg = 45\n", "[optics] mounting_rotation_deg = 45"),
+    ("[source]\nloop = 1\n", "[source] loop = 1: expected true or false"),
+    ("[source]\nuri = 'usb:/dev/video0'\n", "[source] uri"),
+    ("[source]\nuri = 'synthetic:speed=3'\n", "synthetic option 'speed=3'"),
+    ("[source]\nwidth = 320\n", "width and height must be given together"),
+    ("[daemon]\nreopen_backoff_s = 5.0\nreopen_backoff_max_s = 1.0\n", "reopen_backoff_max_s"),
+    ("[link\nport = 1\n", "not valid TOML"),
+])
+def test_bad_config_names_file_and_key(tmp_path, text, needle):
+    path = _write(tmp_path, text)
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert str(path) in str(info.value)
+    assert needle in str(info.value)
+
+
+def test_missing_file_is_named(tmp_path):
+    with pytest.raises(ConfigError, match="nope.toml: configuration file not found"):
+        load_config(tmp_path / "nope.toml")
+
+
+def test_values_are_normalised_and_typed(tmp_path):
+    path = _write(tmp_path, "[source]\npixel_format = 'yuyv'\nfps = 30\n[link]\nautopilot = 'PX4'\n")
+    config = load_config(path)
+    assert config.source.pixel_format == "YUYV"
+    assert config.source.fps == 30.0 and isinstance(config.source.fps, float)
+    assert config.link.autopilot == "px4"
+
+
+def test_flags_override_file_and_are_validated(tmp_path):
+    path = _write(tmp_path, "[source]\nuri = 'synthetic:'\n[link]\nport = '/dev/ttyS0'\nbaud = 57600\n")
+    parser = build_parser()
+    config = load_config(path)
+    args = parser.parse_args(["--serial", "/dev/ttyUSB1", "--baud", "921600", "--autopilot", "px4",
+                              "--focal-length-px", "300", "--frames", "5", "--realtime",
+                              "--source", "video:/tmp/x.avi"])
+    _apply_flags(config, args)
+    assert (config.link.port, config.link.baud, config.link.autopilot) == ("/dev/ttyUSB1", 921600, "px4")
+    assert config.optics.focal_length_px == 300.0
+    assert config.frames == 5 and config.source.realtime
+    assert config.source.uri == "video:/tmp/x.avi"
+    with pytest.raises(ConfigError, match=r"command line: \[link\] baud = 10"):
+        _apply_flags(load_config(path), parser.parse_args(["--baud", "10"]))
+    with pytest.raises(ConfigError, match="command line: \\[source\\] uri"):
+        _apply_flags(load_config(path), parser.parse_args(["--source", "webcam"]))
+
+
+def test_focal_length_resolution():
+    config = Config()
+    assert config.focal_length_px(320, 320.0) == 320.0            # source default
+    config.optics.horizontal_fov_deg = 90.0
+    assert math.isclose(config.focal_length_px(320, 320.0), 160.0)  # from the field of view
+    config.optics.focal_length_px = 277.0
+    assert config.focal_length_px(320, None) == 277.0             # explicit wins
+    camera = Config()
+    camera.source.uri = "v4l2:/dev/video0"
+    with pytest.raises(ConfigError, match="is a camera: give --focal-length-px"):
+        camera.focal_length_px(320, None)
+
+
+def test_cli_reports_bad_key_and_exits_2(tmp_path):
+    path = _write(tmp_path, "[link]\nport = '/dev/null'\nbuad = 115200\n")
+    result = run_cli(["--config", path], timeout=60)
+    assert result.returncode == 2
+    assert f"{path}: unknown key [link] buad" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_cli_needs_a_serial_port():
+    result = run_cli(["--source", "synthetic:"], timeout=60)
+    assert result.returncode == 2
+    assert "no serial port" in result.stderr
+
+
+def test_cli_help_lists_exactly_the_documented_flags():
+    result = run_cli(["--help"], timeout=60)
+    assert result.returncode == 0
+    flags = set(re.findall(r"(--[a-z][a-z-]+)", result.stdout))
+    assert flags == {"--help", "--config", "--log-level", "--source", "--serial", "--baud", "--autopilot",
+                     "--protocol", "--focal-length-px", "--frames", "--realtime", "--demo"}

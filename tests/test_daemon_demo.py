@@ -1,0 +1,49 @@
+"""``emdflowd --demo``: headless, a live table read back from the pty by pymavlink."""
+
+from __future__ import annotations
+
+import os
+import sys
+import re
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # shared helpers
+from daemon_util import engine_backend, run_cli  # noqa: E402
+
+
+def test_demo_prints_live_telemetry_and_a_summary(tmp_path):
+    config = tmp_path / "demo.toml"
+    backend = engine_backend()
+    size = "" if backend == "opencl" else "[source]\nwidth = 96\nheight = 72\n"  # numpy is slow
+    config.write_text(f'[engine]\nbackend = "{backend}"\n{size}')
+    result = run_cli(["--demo", "--frames", "250", "--config", config], timeout=120)
+    assert result.returncode == 0, result.stdout + result.stderr[-3000:]
+    lines = result.stdout.splitlines()
+    header = next(i for i, line in enumerate(lines) if line.lstrip().startswith("t [s]"))
+    assert "latency p50/p99 ms" in lines[header] and "quality" in lines[header]
+    rows = [line for line in lines[header + 1:] if re.match(r"\s+\d+\.\d\s", line)]
+    assert rows, result.stdout
+    # a row: time, frames/s, msgs/s, heartbeats, latency p50 / p99, flow rate x,y, truth x,y, quality
+    fields = re.findall(r"[-+]?\d+\.?\d*", rows[-1])
+    assert int(fields[1]) > 0 and int(fields[2]) > 0 and int(fields[-1]) > 0
+    summary = lines[-1]
+    match = re.search(r"summary: 250 frames .* received (\d+) OPTICAL_FLOW \+ (\d+) HEARTBEAT .*"
+                      r"latency capture->serial p50 ([\d.]+) ms p99 ([\d.]+) ms", summary)
+    assert match, summary
+    flows, beats, p50, p99 = int(match[1]), int(match[2]), float(match[3]), float(match[4])
+    assert flows >= 200 and beats >= 1 and 0 < p50 <= p99
+    assert "Traceback" not in result.stderr
+
+
+def test_demo_stops_on_its_own_after_the_set_time():
+    # no --frames: the default run time is 10 s; run_demo's own parameter keeps this test short
+    from io import StringIO
+
+    from firmware_py.demo import DEMO_SECONDS, run_demo
+
+    assert DEMO_SECONDS == 10.0
+    out = StringIO()
+    code = run_demo(seconds=2.5, source="synthetic:circle=2,period=1", config_path=None, out=out,
+                    backend=engine_backend(), size=(96, 72))
+    text = out.getvalue()
+    assert code == 0, text
+    assert text.count("\n") >= 4 and "summary:" in text.splitlines()[-1]

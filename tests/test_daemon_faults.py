@@ -1,0 +1,259 @@
+"""Faults: sources that end or fail, wrong frames, a serial port that vanishes, no OpenCL,
+signals and systemd notifications — each handled with a clear log line and no crash."""
+
+from __future__ import annotations
+
+import os
+import sys
+import shutil
+import signal
+import socket
+import subprocess
+import time
+
+import numpy as np
+import pytest
+
+from firmware_py.config import Config
+from firmware_py.daemon import Daemon
+from firmware_py.sources import Frame, SourceError, make_source
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # shared helpers
+from daemon_util import (  # noqa: E402
+    Drain, PtyPair, engine_backend, flight_frames, parse_mavlink, run_cli, start_cli, write_video,
+)
+
+
+def _config(tmp_path, text=""):
+    path = tmp_path / "emdflow.toml"
+    path.write_text(f'[engine]\nbackend = "{engine_backend()}"\n{text}')
+    return path
+
+
+def _flow_qualities(msgs):
+    return [(m.get_type(), getattr(m, "quality", None)) for m in msgs if m.get_type() in ("OPTICAL_FLOW", "HEARTBEAT")]
+
+
+def test_source_that_ends_is_reopened_while_heartbeats_continue(tmp_path):
+    clip = write_video(tmp_path / "short.avi", flight_frames(12, width=96, height=72), fps=50)
+    config = _config(tmp_path, "[link]\nheartbeat_rate_hz = 10.0\n[daemon]\nreopen_backoff_s = 0.5\n"
+                               "blind_after_s = 0.05\nlog_interval_s = 1.0\n")
+    pty = PtyPair()
+    drain = Drain(pty.master)
+    try:
+        result = run_cli(["--config", config, "--source", f"video:{clip}", "--serial", pty.path,
+                          "--autopilot", "ardupilot", "--baud", "921600", "--frames", 30])
+    finally:
+        data = drain.stop()
+        pty.close()
+    assert result.returncode == 0, result.stderr[-3000:]
+    err = result.stderr
+    assert err.count("end of stream; reopening in") == 2          # 12 + 12 + 6 frames
+    assert "short.avi reopened" in err and "estimator reset" in err
+    assert "Traceback" not in err
+    seq = _flow_qualities(parse_mavlink(data))
+    good = [i for i, (name, q) in enumerate(seq) if name == "OPTICAL_FLOW" and q > 0]
+    blind = [i for i, (name, q) in enumerate(seq) if name == "OPTICAL_FLOW" and q == 0 and i > good[0]]
+    assert blind, "no quality-0 flow message while the source was closed"
+    gap = seq[blind[0]:next(i for i in good if i > blind[0])]
+    assert ("HEARTBEAT", None) in gap                             # heartbeats went on meanwhile
+
+
+class _FaultySource:
+    """A real source that fails the way a camera does: unplugged at read ``fail_at``, or one
+    frame of the wrong size at read ``bad_at``."""
+
+    def __init__(self, inner, *, fail_at=None, bad_at=None):
+        self.inner, self.fail_at, self.bad_at, self.reads = inner, fail_at, bad_at, 0
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def read(self):
+        self.reads += 1
+        if self.reads == self.fail_at:
+            raise SourceError(f"{self.inner.uri}: read failed (USB camera unplugged)")
+        frame = self.inner.read()
+        if self.reads == self.bad_at:
+            image = np.zeros((frame.image.shape[0] + 8, frame.image.shape[1]), np.uint8)
+            return Frame(image, frame.timestamp_us, frame.capture_host_us, frame.index)
+        return frame
+
+
+def _run_inprocess(tmp_path, factory, frames):
+    config = Config()
+    config.set("source", "uri", "synthetic:u=2,v=1")
+    config.set("source", "width", 96)
+    config.set("source", "height", 72)
+    config.set("engine", "backend", engine_backend())
+    config.set("daemon", "reopen_backoff_s", 0.2)
+    config.set("daemon", "blind_after_s", 0.05)
+    config.set("daemon", "threading", "single")
+    config.frames = frames
+    pty = PtyPair()
+    config.set("link", "port", pty.path)
+    config.set("link", "baud", 921600)
+    drain = Drain(pty.master)
+    daemon = Daemon(config, source_factory=factory)
+    try:
+        code = daemon.run()
+    finally:
+        data = drain.stop()
+        pty.close()
+    return code, daemon, parse_mavlink(data)
+
+
+def test_source_that_raises_is_reopened_and_link_reports_blind(tmp_path, caplog):
+    made = []
+
+    def factory():
+        inner = make_source("synthetic:u=2,v=1", width=96, height=72, fps=100)
+        made.append(_FaultySource(inner, fail_at=15 if not made else None))
+        return made[-1]
+
+    code, daemon, msgs = _run_inprocess(tmp_path, factory, frames=40)
+    assert code == 0
+    assert daemon.stats.processed == 40 and daemon.stats.reopens == 1 and len(made) == 2
+    assert "synthetic:u=2,v=1: read failed (USB camera unplugged); reopening in 0.2 s" in caplog.text
+    assert "camera blind" in caplog.text
+    qualities = [m.quality for m in msgs if m.get_type() == "OPTICAL_FLOW"]
+    first_blind = qualities.index(0, 5)                    # quality 0 while unplugged ...
+    assert any(q > 0 for q in qualities[first_blind:])     # ... and good flow again after
+    assert daemon.link.stats["blind_reports"] >= 1
+
+
+def test_frame_of_wrong_size_is_skipped_with_a_clear_line(tmp_path, caplog):
+    def factory():
+        return _FaultySource(make_source("synthetic:u=2,v=1", width=96, height=72, fps=100), bad_at=10)
+
+    code, daemon, msgs = _run_inprocess(tmp_path, factory, frames=20)
+    assert code == 0
+    assert daemon.stats.bad_frames == 1 and daemon.stats.processed == 20
+    assert "source frame 9 is (80, 96) uint8, expected (72, 96) uint8 (96x72): frame skipped" in caplog.text
+    assert sum(m.get_type() == "OPTICAL_FLOW" for m in msgs) >= 15
+
+
+def test_no_opencl_platform_is_a_clear_error(tmp_path):
+    pty = PtyPair()
+    try:
+        # the ICD loader then finds no OpenCL driver at all, as on a board without one
+        result = run_cli(["--source", "synthetic:", "--serial", pty.path, "--frames", 5],
+                         env={"OCL_ICD_VENDORS": str(tmp_path / "no-such-vendors-dir")}, timeout=120)
+    finally:
+        pty.close()
+    assert result.returncode == 1
+    assert "no OpenCL platform" in result.stderr and 'backend="numpy"' in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+@pytest.mark.skipif(shutil.which("socat") is None, reason="socat not installed (apt-get install socat)")
+def test_serial_port_that_disappears_and_comes_back(tmp_path):
+    daemon_end, reader_end = tmp_path / "ttyFC", tmp_path / "ttyReader"
+
+    def start_socat():
+        proc = subprocess.Popen(["socat", f"PTY,link={daemon_end},raw,echo=0",
+                                 f"PTY,link={reader_end},raw,echo=0"], stderr=subprocess.DEVNULL)
+        deadline = time.monotonic() + 5
+        while not (daemon_end.exists() and reader_end.exists()) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        return proc
+
+    def read_messages(seconds):
+        fd = os.open(reader_end, os.O_RDONLY | os.O_NOCTTY | os.O_NONBLOCK)
+        drain = Drain(fd)
+        time.sleep(seconds)
+        data = drain.stop()
+        os.close(fd)
+        return parse_mavlink(data)
+
+    socat = start_socat()
+    config = _config(tmp_path, "[source]\nwidth = 96\nheight = 72\nfps = 50.0\n[link]\nheartbeat_rate_hz = 5.0\n"
+                               "[daemon]\nlog_interval_s = 1.0\n")
+    daemon = start_cli(["--config", config, "--source", "synthetic:u=2,v=1", "--realtime",
+                        "--serial", daemon_end, "--baud", "921600"])
+    try:
+        before = read_messages(2.0)
+        socat.terminate()
+        socat.wait(5)                                  # the port is gone (like a USB adapter pulled)
+        assert not daemon_end.exists()
+        time.sleep(1.0)
+        assert daemon.poll() is None                   # the daemon is still running
+        socat = start_socat()                          # ... and plugged back in
+        after = read_messages(3.0)
+    finally:
+        daemon.send_signal(signal.SIGTERM)
+        out, err = daemon.communicate(timeout=30)
+        socat.terminate()
+        socat.wait(5)
+    assert daemon.returncode == 0, err[-3000:]
+    assert {"HEARTBEAT", "OPTICAL_FLOW"} <= {m.get_type() for m in before}
+    assert {"HEARTBEAT", "OPTICAL_FLOW"} <= {m.get_type() for m in after}
+    assert "reopened" in err and "Traceback" not in err
+
+
+def test_sigterm_stops_cleanly_with_systemd_notifications(tmp_path):
+    sock_path = str(tmp_path / "notify.sock")
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind(sock_path)
+    server.settimeout(60)
+    config = _config(tmp_path, "[source]\nwidth = 96\nheight = 72\n")
+    pty = PtyPair()
+    drain = Drain(pty.master)
+    daemon = start_cli(["--config", config, "--source", "synthetic:u=1,v=1", "--realtime", "--serial", pty.path],
+                       env={"NOTIFY_SOCKET": sock_path, "WATCHDOG_USEC": "400000", "JOURNAL_STREAM": "8:1234"})
+    try:
+        messages = [server.recv(4096).decode()]
+        while not any(m.startswith("WATCHDOG=1") for m in messages):
+            messages.append(server.recv(4096).decode())
+        daemon.send_signal(signal.SIGTERM)
+        out, err = daemon.communicate(timeout=30)
+        server.settimeout(1)
+        try:
+            while True:
+                messages.append(server.recv(4096).decode())
+        except socket.timeout:
+            pass
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+        data = drain.stop()
+        pty.close()
+        server.close()
+    assert daemon.returncode == 0, err[-3000:]
+    assert messages[0].startswith("READY=1")
+    assert "STOPPING=1" in messages
+    assert "<6>emdflowd: SIGTERM: stopping" in err            # journald priority prefix
+    assert "<6>emdflowd: total:" in err                      # final counters on the way out
+    assert parse_mavlink(data)
+
+
+def test_camera_missing_at_start_keeps_heartbeating_blind(tmp_path):
+    config = _config(tmp_path, "[daemon]\nreopen_backoff_s = 0.2\nreopen_backoff_max_s = 0.4\n")
+    pty = PtyPair()
+    drain = Drain(pty.master)
+    daemon = start_cli(["--config", config, "--source", "v4l2:/dev/video7", "--focal-length-px", "300",
+                        "--serial", pty.path, "--autopilot", "ardupilot"])
+    try:
+        deadline = time.monotonic() + 60
+        while (time.monotonic() < deadline and daemon.poll() is None
+               and sum(m.get_type() == "OPTICAL_FLOW" for m in parse_mavlink(bytes(drain.data))) < 5):
+            time.sleep(0.1)
+        daemon.send_signal(signal.SIGTERM)
+        _, err = daemon.communicate(timeout=30)
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+        data = drain.stop()
+        pty.close()
+    assert daemon.returncode == 0, err[-3000:]
+    assert "v4l2:/dev/video7: /dev/video7 does not exist (camera unplugged?)" in err
+    assert err.count("does not exist") >= 2                                # retried
+    msgs = parse_mavlink(data)
+    flows = [m for m in msgs if m.get_type() == "OPTICAL_FLOW"]
+    assert any(m.get_type() == "HEARTBEAT" for m in msgs)
+    assert len(flows) >= 5 and all(m.quality == 0 and m.flow_rate_x == 0 for m in flows)
+
+
+def test_camera_without_focal_length_is_a_config_error():
+    result = run_cli(["--source", "v4l2:/dev/video7", "--serial", "/dev/null"], timeout=60)
+    assert result.returncode == 2
+    assert "is a camera: give --focal-length-px F or [optics] focal_length_px" in result.stderr

@@ -1,0 +1,121 @@
+"""The loop's building blocks: steady subset, one-slot mailbox, source recovery."""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+import time
+
+import numpy as np
+
+from firmware_py.daemon import FrameMailbox, SourceKeeper, Stats, SteadySubset, choose_threading
+from firmware_py.sources import Frame, make_source
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # shared helpers
+from daemon_util import flight_frames, write_video  # noqa: E402
+
+
+def _frame(index, fps=100.0):
+    return Frame(np.zeros((4, 4), np.uint8), int(index * 1e6 / fps), 0, index)
+
+
+def _feed(subset, start, count, busy_s, fps=100.0):
+    """Capture ``count`` frames; the 'engine' takes busy_s per accepted frame."""
+    accepted = []
+    for i in range(start, start + count):
+        f = _frame(i, fps)
+        subset.observe_capture(f)
+        if subset.accept(f):
+            accepted.append(i)
+            subset.observe_busy(busy_s, now_s=i / fps)
+    return accepted
+
+
+def test_steady_subset_keeps_even_spacing_under_load():
+    subset = SteadySubset(relax_s=0.5)
+    assert _feed(subset, 0, 20, 0.004) == list(range(20))         # 4 ms < 10 ms: every frame
+    accepted = _feed(subset, 20, 200, 0.025)                      # 25 ms per frame at 100 fps
+    assert subset.k == 3                                          # ceil(25 * 1.15 / 10)
+    tail = np.diff(accepted[-30:])
+    assert set(tail) == {3}                                       # evenly spaced, not "whatever arrives"
+    accepted = _feed(subset, 220, 300, 0.004)                     # load gone: k relaxes step by step
+    assert subset.k == 1 and set(np.diff(accepted[-20:])) == {1}
+
+
+def test_steady_subset_ignores_single_slow_frames_but_not_drops():
+    subset = SteadySubset()
+    subset.busy_drop()
+    assert subset.k == 1                          # nothing measured yet: a burst, not a load
+    for i in range(40):
+        subset.observe_capture(_frame(i))
+        subset.observe_busy(2.0 if i == 0 else 0.004, now_s=i / 100)  # first frame: kernel build
+    assert subset.k == 1                          # one slow frame does not decimate for long
+    for i in range(40, 60):
+        subset.observe_capture(_frame(i))
+        subset.observe_busy(0.016 if i % 3 == 0 else 0.004, now_s=i / 100)
+    assert subset.k == 1                          # the typical frame fits ...
+    subset.busy_drop()
+    assert subset.k == 2                          # ... but a drop makes room for the slow ones
+    assert subset.accept(_frame(100)) and not subset.accept(_frame(101)) and subset.accept(_frame(102))
+    assert subset.accept(_frame(0))               # index went back (source reopened): accepted
+
+
+def test_mailbox_replaces_unread_frame_and_counts_it():
+    box = FrameMailbox()
+    assert box.put(_frame(1)) is False
+    assert box.put(_frame(2)) is True            # frame 1 was never processed: a drop
+    assert box.get(0.01).index == 2              # the newest, never a queue
+    assert box.get(0.01) is None
+
+
+def test_blocking_mailbox_applies_back_pressure():
+    box = FrameMailbox(block=True)
+    box.put(_frame(1))
+    done = threading.Event()
+    threading.Thread(target=lambda: (box.put(_frame(2)), done.set()), daemon=True).start()
+    assert not done.wait(0.2)                    # the writer waits for the reader
+    assert box.get(1.0).index == 1
+    assert done.wait(2.0) and box.get(1.0).index == 2
+
+
+def test_threading_choice():
+    assert choose_threading("auto", live=True) == "capture-thread"
+    assert choose_threading("auto", live=False) == "single"
+    assert choose_threading("single", live=True) == "single"
+    assert choose_threading("capture-thread", live=False) == "capture-thread"
+
+
+def test_source_keeper_reopens_with_backoff(tmp_path, caplog):
+    path = write_video(tmp_path / "short.avi", flight_frames(5, width=32, height=24), fps=50)
+    stats = Stats()
+    keeper = SourceKeeper(lambda: make_source(f"video:{path}"), backoff_s=0.05, backoff_max_s=0.2, stats=stats)
+    got = []
+    deadline = time.monotonic() + 10
+    nones = 0
+    while len(got) < 12 and time.monotonic() < deadline:
+        frame = keeper.read()
+        if frame is None:
+            nones += 1
+            time.sleep(0.01)
+        else:
+            got.append(frame.index)
+    assert got[:12] == [0, 1, 2, 3, 4, 0, 1, 2, 3, 4, 0, 1]   # end of stream -> reopened twice
+    assert stats.reopens == 2 and nones >= 2
+    assert "end of stream; reopening in 0.1 s" in caplog.text or "end of stream; reopening in 0.05" in caplog.text
+    keeper.close()
+
+
+def test_source_keeper_backoff_grows_while_source_is_missing(tmp_path, caplog):
+    path = tmp_path / "later.avi"
+    keeper = SourceKeeper(lambda: make_source(f"video:{path}"), backoff_s=0.05, backoff_max_s=0.1)
+    assert keeper.read() is None and keeper.blind
+    assert "later.avi" in caplog.text and "no such file" in caplog.text
+    assert 0.0 < keeper.retry_in_s() <= 0.05
+    time.sleep(0.06)
+    assert keeper.read() is None
+    assert 0.05 < keeper.retry_in_s() <= 0.1                   # doubled
+    write_video(path, flight_frames(3, width=32, height=24))   # the device comes back
+    time.sleep(0.11)
+    frame = keeper.read()
+    assert frame is not None and frame.index == 0 and not keeper.blind
+    keeper.close()
