@@ -37,6 +37,11 @@ class FlowEstimator:
         adds slow channels (1/2 and 1/4 px/frame at scale 1).
     delay_scales : tuple of int, optional
         Scales at which delays > 1 apply (default ``(1,)``).
+    threshold_mode : {'fixed', 'adaptive'}, optional
+        ``'fixed'`` (default, the paper) or ``'adaptive'``: θ follows the scene contrast
+        frame by frame (see :class:`emdflow.EngineParams`).
+    adaptive_gain, threshold_min, threshold_max : float, optional
+        Gain and limits of the adaptive threshold, gray levels.
     device : str or int, optional
         OpenCL device: an index into :func:`emdflow.opencl_devices` or a substring of the
         platform/device name. Default: the ``EMDFLOW_OPENCL_DEVICE`` environment variable,
@@ -69,6 +74,10 @@ class FlowEstimator:
         sharp_templates: bool = False,
         delays=(1,),
         delay_scales=(1,),
+        threshold_mode: str = "fixed",
+        adaptive_gain: float = 0.4,
+        threshold_min: float = 1.5,
+        threshold_max: float = 10.0,
         device=None,
     ):
         for name, value in (("width", width), ("height", height)):
@@ -86,6 +95,10 @@ class FlowEstimator:
             sharp_templates=bool(sharp_templates),
             delays=tuple(delays),
             delay_scales=tuple(delay_scales),
+            threshold_mode=threshold_mode,
+            adaptive_gain=adaptive_gain,
+            threshold_min=threshold_min,
+            threshold_max=threshold_max,
         )
         if backend == "numpy":
             self._engine = ReferenceEngine(self.width, self.height, self.params)

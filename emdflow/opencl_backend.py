@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from .params import ORIENTATION_BINS, EngineParams
-from .reference import POSITION_BINS, STAT_FIRST_CHANGED
+from .reference import POSITION_BINS, STAT_CONTRAST, STAT_FIRST_CHANGED
 
 __all__ = ["OpenCLEngine", "list_devices", "kernel_source"]
 
@@ -141,10 +141,8 @@ class _Layout:
             "SSTRIDE": self.SSTRIDE, "SPAD": self.SPAD, "SAT_SLOTS": self.SAT_SLOTS,
             "NCH": len(chans),
             "CH_K": join(k for k, _ in chans), "CH_D": join(d for _, d in chans),
-            "CH_T": join(params.box_threshold(k) for k, _ in chans),
             "CH_RING": join(self.rings), "CH_BASE": join(self.bases),
             "RADIUS": len(w) // 2, "WEIGHTS": join(w),
-            "TEX_T": params.texture_threshold,
             "SHARP": int(params.sharp_templates),
             "STATS_OFFSET": self.stats_offset,
             "EVIDENCE_ROW_STEP": params.evidence_row_step(height),
@@ -236,6 +234,7 @@ class OpenCLEngine:
         self._cl.enqueue_fill_buffer(self.queue, self.planes, np.uint8(0), 0, self.planes.size)
         self.queue.finish()
         self.t = 0
+        self.theta_q = self.params.threshold_q(self.params.threshold)  # threshold of the next frame
 
     def step(self, frame: np.ndarray):
         """Process one frame; returns ``(u_code, v_code, stats, hist, positions)`` like the reference."""
@@ -246,7 +245,8 @@ class OpenCLEngine:
         cl.enqueue_fill_buffer(q, self.result, np.uint8(0), lay.stats_offset, 4 * lay.n_stats)
         self._k_prefilter(q, self._g_strips, None, self.frame_buf, self.h_buf, self.p_buf, self.sat_buf, slot)
         self._k_integral(q, self._g_rows, None, self.sat_buf, slot)
-        self._k_states(q, self._g_rows, None, self.sat_buf, self.planes, self.p_buf, self.frame_buf, self.result, t)
+        self._k_states(q, self._g_rows, None, self.sat_buf, self.planes, self.p_buf, self.frame_buf, self.result, t,
+                       np.int32(self.theta_q))
         self._k_evd(q, self._g_words, None, self.planes, self.result, self.debug_buf, t)
         self._k_evidence(q, self._g_rows, None, self.result, self.sat_buf, t)
         host = np.empty(lay.result_bytes, np.uint8)
@@ -258,6 +258,9 @@ class OpenCLEngine:
         ints = host[lay.stats_offset :].view(np.int32)
         n_ch = len(lay.channels)
         stats = ints[: lay.n_fixed].astype(np.int64)
+        self.last_theta_q = self.theta_q
+        self.theta_q = self.params.next_threshold_q(int(stats[STAT_CONTRAST]),
+                                                    self.params.contrast_samples(lay.W, lay.H))
         positions = ints[lay.n_fixed : lay.n_fixed + lay.pos_size].astype(np.int64)
         copies = ints[lay.n_fixed + lay.pos_size :].reshape(lay.HIST_COPIES, lay.hist_size)
         hist = copies.sum(axis=0, dtype=np.int64).reshape(2, 2 * n_ch, ORIENTATION_BINS)

@@ -7,8 +7,9 @@ OpenCL kernels agree bit for bit:
   each pass rounded to whole gray levels, so the prefiltered image ``P`` is 8-bit;
 * receptor values are *box sums* of ``P`` over ``k × k`` blocks (never divided; below
   2**16 for ``k ≤ 15``);
-* the ternary threshold on a box-sum difference is ``floor(θ · k²)``, compared with
-  ``>``, which is exactly "mean change > θ gray levels";
+* the threshold θ is held in fixed point, ``θq = round(256 θ)``, and the ternary
+  threshold on a box-sum difference is ``(θq · k²) >> 8`` = ``floor(θ · k²)``, compared
+  with ``>``, which is exactly "mean change > θ gray levels";
 * the gradient orientation used by the summary is binned with integer cross products
   against a table of boundary directions.
 
@@ -92,6 +93,17 @@ class EngineParams:
         px/frame at scale 1.
     delay_scales : tuple of int
         Scales at which the delays > 1 are applied.
+    threshold_mode : {'fixed', 'adaptive'}
+        ``'fixed'`` (the paper): θ = ``threshold`` always. ``'adaptive'``: contrast
+        adaptation (the paper's §5 future work) — θ for frame ``t`` is
+        ``clip(adaptive_gain · g(t−1), threshold_min, threshold_max)`` with ``g`` the mean
+        ``|ΔxP| + |ΔyP|`` (central differences, gray levels) of the previous frame, so the
+        detector keeps its density when scene contrast or exposure changes.
+    adaptive_gain, threshold_min, threshold_max : float
+        Gain and limits of the adaptive threshold (gray levels). The defaults give θ ≈ 4–8
+        on the bundled photographs at full contrast (θ = 5 is the paper's) and follow a
+        contrast drop down to 1.5 (≈ 3σ of the prefiltered frame-difference noise for
+        sensor noise σ = 2).
     """
 
     scales: tuple[int, ...] = (1, 3, 5, 7, 9, 11, 13)
@@ -100,8 +112,20 @@ class EngineParams:
     sharp_templates: bool = False
     delays: tuple[int, ...] = (1,)
     delay_scales: tuple[int, ...] = (1,)
+    threshold_mode: str = "fixed"
+    adaptive_gain: float = 0.4
+    threshold_min: float = 1.5
+    threshold_max: float = 10.0
 
     def __post_init__(self):
+        if self.threshold_mode not in ("fixed", "adaptive"):
+            raise ValueError(f"threshold_mode={self.threshold_mode!r}: expected 'fixed' or 'adaptive'")
+        for name in ("adaptive_gain", "threshold_min", "threshold_max"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and 0 < value <= 255):
+                raise ValueError(f"{name}={value!r}: must be a number in (0, 255]")
+        if self.threshold_min > self.threshold_max:
+            raise ValueError(f"threshold_min={self.threshold_min} is above threshold_max={self.threshold_max}")
         scales = tuple(int(k) for k in self.scales)
         if not scales:
             raise ValueError("scales: at least one scale is needed")
@@ -146,14 +170,37 @@ class EngineParams:
     def max_delay(self) -> int:
         return max(self.delays)
 
-    def box_threshold(self, k: int) -> int:
-        """Integer threshold on a k×k box-sum difference: ``floor(θ · k²)``."""
-        return int(math.floor(self.threshold * k * k))
+    @staticmethod
+    def threshold_q(theta: float) -> int:
+        """Fixed-point threshold ``round(256 θ)`` (what both backends compute with)."""
+        return int(round(float(theta) * 256))
+
+    def box_threshold(self, k: int, theta_q: int | None = None) -> int:
+        """Integer threshold on a k×k box-sum difference: ``(θq · k²) >> 8`` = ``floor(θ · k²)``."""
+        q = self.threshold_q(self.threshold) if theta_q is None else int(theta_q)
+        return (q * k * k) >> 8
+
+    def texture_threshold_for(self, theta_q: int) -> int:
+        """Threshold on ``|ΔxP| + |ΔyP|`` for a textured pixel: ``floor(2θ)``."""
+        return (2 * int(theta_q)) >> 8
 
     @property
     def texture_threshold(self) -> int:
-        """Threshold on ``|ΔxP| + |ΔyP|`` (central differences) for a textured pixel."""
-        return int(math.floor(2 * self.threshold))
+        """:meth:`texture_threshold_for` the fixed threshold."""
+        return self.texture_threshold_for(self.threshold_q(self.threshold))
+
+    def next_threshold_q(self, contrast_sum: int, sampled: int) -> int:
+        """Threshold (fixed point) for the next frame from this frame's contrast statistic."""
+        if self.threshold_mode == "fixed" or sampled <= 0:
+            return self.threshold_q(self.threshold)
+        g = contrast_sum / sampled
+        theta = min(self.threshold_max, max(self.threshold_min, self.adaptive_gain * g))
+        return self.threshold_q(theta)
+
+    @staticmethod
+    def contrast_samples(width: int, height: int) -> int:
+        """Pixels the textured and contrast statistics sample (even interior rows)."""
+        return ((height - 2) // 2) * max(0, width - 2)
 
     @property
     def history_frames(self) -> int:

@@ -45,6 +45,7 @@ __all__ = [
     "STAT_TEXTURED",
     "STAT_SATURATED",
     "STAT_BRIGHTENING",
+    "STAT_CONTRAST",
     "STAT_FIRST_CHANGED",
     "POSITION_BINS",
 ]
@@ -58,7 +59,8 @@ STAT_V_DETECTIONS = 1  #: pixels with a vertical detection
 STAT_TEXTURED = 2  #: sampled pixels with gradient above the threshold (see summary_statistics)
 STAT_SATURATED = 3  #: sampled pixels at 0..2 or 253..255
 STAT_BRIGHTENING = 4  #: positive states of the finest one-frame channel (brightness steps)
-STAT_FIRST_CHANGED = 5  #: then one count of nonzero states per channel
+STAT_CONTRAST = 5  #: sum of |ΔxP| + |ΔyP| over the textured statistic's sample
+STAT_FIRST_CHANGED = 6  #: then one count of nonzero states per channel
 #: Detections are also counted by position: x (horizontal) or y (vertical) in this many bins.
 POSITION_BINS = 16
 
@@ -255,13 +257,15 @@ def summary_statistics(
     v_code: np.ndarray,
     receptors_mid: dict[int, np.ndarray],
     states_now: list[np.ndarray],
+    theta_q: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame evidence for the summary (identical in both backends).
 
     * counts of horizontal / vertical detections;
     * textured pixels: on even rows, interior pixels where
       ``|P(x+1)−P(x−1)| + |P(y+1)−P(y−1)| > floor(2θ)`` — a 1 px/frame motion there
-      would change a scale-1 receptor by more than θ;
+      would change a scale-1 receptor by more than θ; and the sum of that quantity over
+      the same pixels (the contrast statistic of the adaptive threshold);
     * saturated pixels: on even rows, raw value ≤ 2 or ≥ 253;
     * positive states of the finest one-frame channel (a global brightness step turns
       most of them on at once);
@@ -290,8 +294,10 @@ def summary_statistics(
         p = p_now.astype(np.int64)
         gx = np.abs(p[1:-1, 2:] - p[1:-1, :-2])
         gy = np.abs(p[2:, 1:-1] - p[:-2, 1:-1])
-        textured = (gx + gy) > params.texture_threshold
-        stats[STAT_TEXTURED] = np.count_nonzero(textured[1::2])  # rows 2, 4, …
+        q = params.threshold_q(params.threshold) if theta_q is None else theta_q
+        grad = (gx + gy)[1::2]  # rows 2, 4, …
+        stats[STAT_TEXTURED] = np.count_nonzero(grad > params.texture_threshold_for(q))
+        stats[STAT_CONTRAST] = int(grad.sum())
     even = frame[0::2]
     stats[STAT_SATURATED] = np.count_nonzero((even <= 2) | (even >= 253))
     for c, s in enumerate(states_now):
@@ -353,6 +359,7 @@ class ReferenceEngine:
         self.reset()
 
     def reset(self) -> None:
+        self.theta_q = self.params.threshold_q(self.params.threshold)  # threshold of the next frame
         self._p_history: list[np.ndarray] = []  # newest last, up to max_delay + 1
         self._state_history = {ch: [] for ch in self.params.channels}  # newest last
         self.frame_count = 0
@@ -374,7 +381,7 @@ class ReferenceEngine:
         for c, (k, d) in enumerate(prm.channels):
             if len(self._p_history) > d:
                 change = receptor_change(p_now, self._p_history[-1 - d], k)
-                s_now = ternary_states(change, prm.box_threshold(k))
+                s_now = ternary_states(change, prm.box_threshold(k, self.theta_q))
             else:
                 s_now = zeros  # no frame D steps back yet: no change is known
             hist = self._state_history[(k, d)]
@@ -395,7 +402,9 @@ class ReferenceEngine:
         u_code = fuse_channels(pos[0], neg[0])
         v_code = fuse_channels(pos[1], neg[1])
         stats, hist, positions = summary_statistics(
-            prm, frame, p_now, u_code, v_code, receptors_mid, self.states
+            prm, frame, p_now, u_code, v_code, receptors_mid, self.states, self.theta_q
         )
+        self.last_theta_q = self.theta_q
+        self.theta_q = prm.next_threshold_q(int(stats[STAT_CONTRAST]), prm.contrast_samples(*frame.shape[::-1]))
         self.frame_count += 1
         return u_code, v_code, stats, hist, positions

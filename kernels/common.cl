@@ -9,10 +9,10 @@
  *   SSTRIDE, SPAD   row stride and left padding of the summed-area tables (ushort, H + 1 rows)
  *   SAT_SLOTS       summed-area tables kept (max delay + 1)
  *   NCH             channels (scale, delay), sorted by increasing speed
- *   CH_K, CH_D, CH_T, CH_RING, CH_BASE   per-channel scale, delay, integer threshold,
- *                   state ring length (2D + 1) and first plane slot
+ *   CH_K, CH_D, CH_RING, CH_BASE   per-channel scale, delay, state ring length (2D + 1)
+ *                   and first plane slot (the threshold theta_q = round(256 theta) is a
+ *                   kernel argument: it adapts frame by frame in the adaptive mode)
  *   RADIUS, WEIGHTS prefilter half-width and integer taps (sum 256)
- *   TEX_T           textured-pixel threshold floor(2 * theta)
  *   SHARP           1 to accept the sharp template
  *   EVIDENCE_ROW_STEP  rows between the rows whose detections feed the histogram
  *   HIST_COPIES     copies of the histogram (spread the atomic increments over cache lines)
@@ -33,7 +33,8 @@
 #define STAT_TEXTURED 2
 #define STAT_SATURATED 3
 #define STAT_BRIGHTENING 4
-#define STAT_CHANGED 5
+#define STAT_CONTRAST 5
+#define STAT_CHANGED 6
 #define STAT_POS (STAT_CHANGED + NCH)
 #define POS_SIZE (2 * 2 * NCH * POS_BINS)
 #define STAT_HIST (STAT_POS + POS_SIZE)
@@ -41,7 +42,6 @@
 
 __constant int CK[NCH] = { CH_K };
 __constant int CD[NCH] = { CH_D };
-__constant int CT[NCH] = { CH_T };
 __constant int CRING[NCH] = { CH_RING };
 __constant int CBASE[NCH] = { CH_BASE };
 

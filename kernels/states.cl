@@ -17,7 +17,7 @@ inline ushort16 box16(__global const ushort *S, int y, int x, int r)
 
 __kernel void ternary_states(__global const ushort *sat, __global uint *planes,
                              __global const uchar *P, __global const uchar *frame,
-                             __global char *result, int t)
+                             __global char *result, int t, int theta_q)
 {
     const int y = get_global_id(0);
     __global int *stats = (__global int *)(result + STATS_OFFSET);
@@ -26,7 +26,7 @@ __kernel void ternary_states(__global const ushort *sat, __global uint *planes,
 
     for (int c = 0; c < NCH; c++) {
         const int k = CK[c], r = k / 2, D = CD[c];
-        const ushort T = (ushort)CT[c];
+        const ushort T = (ushort)((theta_q * k * k) >> 8);   /* floor(theta k^2) */
         const int slot = CBASE[c] + t % CRING[c];
         __global uint *pos_row = planes + PLANE_ROW(slot, 0, y);
         __global uint *neg_row = planes + PLANE_ROW(slot, 1, y);
@@ -56,8 +56,10 @@ __kernel void ternary_states(__global const ushort *sat, __global uint *planes,
     }
 
     if ((y & 1) == 0) {
-        /* textured: even interior rows, |dP/dx| + |dP/dy| (central differences) > TEX_T */
-        int textured = 0, saturated = 0;
+        /* textured: even interior rows, |dP/dx| + |dP/dy| (central differences) > floor(2
+         * theta); contrast: the sum of that quantity (drives the adaptive threshold) */
+        const short tex_t = (short)((2 * theta_q) >> 8);
+        int textured = 0, saturated = 0, contrast = 0;
         if (y >= 2 && y <= H - 2) {
             __global const uchar *row = P + y * PSTRIDE + PPAD;
             for (int x = 0; x < W; x += 16) {
@@ -66,8 +68,12 @@ __kernel void ternary_states(__global const ushort *sat, __global uint *planes,
                 const short16 xs = lane + (short)x;
                 /* |g| by sign masks: PoCL 3.0 cannot scalarise abs() and calls max() */
                 const short16 sx = gx >> 15, sy = gy >> 15;
-                short16 hit = (((gx ^ sx) - sx) + ((gy ^ sy) - sy) > (short)TEX_T) & (xs >= (short)1) & (xs <= (short)(W - 2));
-                textured += POPCOUNT(pack16(hit));
+                const short16 inside = (xs >= (short)1) & (xs <= (short)(W - 2));
+                const short16 g = (((gx ^ sx) - sx) + ((gy ^ sy) - sy)) & inside;
+                textured += POPCOUNT(pack16(g > tex_t));
+                const short8 g8 = g.lo + g.hi;  /* <= 2 * 510: no overflow */
+                const int4 g4 = convert_int4(g8.lo) + convert_int4(g8.hi);
+                contrast += g4.x + g4.y + g4.z + g4.w;
             }
         }
         /* saturated: even rows, raw value <= 2 or >= 253 */
@@ -79,6 +85,7 @@ __kernel void ternary_states(__global const ushort *sat, __global uint *planes,
         }
         for (; x < W; x++) saturated += (raw[x] <= 2) | (raw[x] >= 253);
         if (textured) ATOMIC_ADD(stats + STAT_TEXTURED, textured);
+        if (contrast) ATOMIC_ADD(stats + STAT_CONTRAST, contrast);
         if (saturated) ATOMIC_ADD(stats + STAT_SATURATED, saturated);
     }
 }

@@ -80,8 +80,10 @@ def test_structured_edges_every_direction_and_polarity(direction, polarity):
         EngineParams(prefilter_size=7, threshold=3.0, scales=(1, 3, 7, 15)),
         EngineParams(delays=(1, 2, 4)),
         EngineParams(delays=(1, 3), delay_scales=(1, 3)),
+        EngineParams(threshold_mode="adaptive"),
+        EngineParams(threshold_mode="adaptive", delays=(1, 2, 4), threshold=7.3),
     ],
-    ids=["sharp", "no-prefilter", "w7-scales", "delays124", "delays13"],
+    ids=["sharp", "no-prefilter", "w7-scales", "delays124", "delays13", "adaptive", "adaptive-delays"],
 )
 def test_parameter_variants(params):
     width, height = 89, 67
