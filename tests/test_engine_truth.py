@@ -122,6 +122,6 @@ def test_temporal_delays_see_slow_motion():
     paper, _ = _density((0.25, 0.0))
     slow, fields = _density((0.25, 0.0), delays=(1, 2, 4))
     assert paper < 0.001
-    assert slow > 10 * max(paper, 0.0005)
+    assert slow > 0.002 and slow > 20 * paper
     u = np.concatenate([f.u[np.isfinite(f.u)] for f in fields])
     assert np.mean(u > 0) > 0.9 and np.median(u) == 0.25
