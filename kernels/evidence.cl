@@ -16,16 +16,26 @@ inline int box_at(__global const ushort *S, int cx, int cy, int r)
     return (ushort)(bot[w] - top[w] - bot[0] + top[0]);  /* exact below 2^16 */
 }
 
+/* 1 when the gradient lies at or beyond boundary b (the exact integer test) */
+#define BEYOND(b) (OC[(b)] * gy - OS[(b)] * gx >= 0)
+
 inline int orientation_bin(int gx, int gy)
 {
     if (gy < 0 || (gy == 0 && gx < 0)) { gx = -gx; gy = -gy; }
-    /* number of boundaries b with OC[b] * gy - OS[b] * gx >= 0; the test is monotone in
-     * b, so a branch-free binary search finds it (NBINS is a power of two) */
-    int n = 0;
-    for (int step = NBINS / 2; step > 0; step >>= 1) {
-        const int b = n + step - 1;
-        n += (b < NBINS - 1 && OC[b] * gy - OS[b] * gx >= 0) ? step : 0;
-    }
+    /* The bin is the number of boundaries b with OC[b] gy - OS[b] gx >= 0. Guess it from a
+     * cheap arctangent (max error ~0.25 deg, bins are 2.8 deg wide), then let the exact
+     * integer test move it: the result is the exact count, like the reference's. */
+    const float ax = fabs((float)gx), ay = (float)gy;
+    const float t = fmin(ax, ay) / fmax(fmax(ax, ay), 1.0f);
+    float a = t * (0.7853982f + 0.273f * (1.0f - t));            /* atan(t), t in [0, 1] */
+    if (ay > ax) a = 1.5707963f - a;
+    if (gx < 0) a = 3.1415927f - a;
+    int n = (int)(a * (NBINS / 3.1415927f));
+    n = n < 0 ? 0 : (n > NBINS - 1 ? NBINS - 1 : n);
+    /* the guess is off by at most one bin: one branch-free step each way */
+    const int below = n > 0 ? n - 1 : 0, at = n < NBINS - 1 ? n : NBINS - 2;
+    n -= (n > 0) & !BEYOND(below);
+    n += (n < NBINS - 1) & BEYOND(at > n ? n : at);
     return n;
 }
 
