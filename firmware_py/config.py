@@ -58,6 +58,17 @@ class EngineConfig:
 
     backend: str = _opt("opencl", choices=("opencl", "numpy"), doc="estimator backend")
     reset_after_gap_s: float = _opt(0.5, minimum=0.01, maximum=60.0, doc="reset after this gap, s")
+    model: str = _opt("paper", choices=("paper", "extended"), doc="detector model")
+    threshold: float = _opt(5.0, minimum=0.5, maximum=100.0, doc="ternary threshold, gray levels")
+
+    def estimator_options(self) -> dict:
+        """Keyword arguments of ``emdflow.FlowEstimator`` for this section."""
+        options = {"threshold": self.threshold}
+        if self.model == "extended":
+            # temporal delays see 1/2 and 1/4 px/frame (hovering drift); the threshold
+            # follows scene contrast and exposure
+            options.update(delays=(1, 2, 4), delay_scales=(1,), threshold_mode="adaptive")
+        return options
 
 
 @dataclasses.dataclass

@@ -431,7 +431,7 @@ class Daemon:
         if backend == "numpy":
             log.warning("engine backend 'numpy' (reference implementation): 10-100x slower than "
                         "OpenCL; expect a low frame rate. Install an OpenCL driver for flight use.")
-        return emdflow.FlowEstimator(width, height, backend=backend)
+        return emdflow.FlowEstimator(width, height, backend=backend, **self.config.engine.estimator_options())
 
     def _default_link(self, focal_length_px: float):
         from .links import LinkConfig, open_link

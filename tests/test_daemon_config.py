@@ -124,3 +124,17 @@ def test_cli_help_lists_exactly_the_documented_flags():
     flags = set(re.findall(r"(--[a-z][a-z-]+)", result.stdout))
     assert flags == {"--help", "--config", "--log-level", "--source", "--serial", "--baud", "--autopilot",
                      "--protocol", "--focal-length-px", "--frames", "--realtime", "--demo"}
+
+
+def test_engine_model_selects_the_estimator_options(tmp_path):
+    import emdflow
+
+    paper = load_config(_write(tmp_path, '[engine]\nmodel = "paper"\n')).engine
+    assert paper.estimator_options() == {"threshold": 5.0}
+    extended = load_config(_write(tmp_path, '[engine]\nmodel = "extended"\nthreshold = 6.0\n')).engine
+    options = extended.estimator_options()
+    assert options["delays"] == (1, 2, 4) and options["threshold_mode"] == "adaptive"
+    est = emdflow.FlowEstimator(64, 48, backend="numpy", **options)
+    assert 0.25 in est.params.speeds and est.params.threshold == 6.0
+    with pytest.raises(ConfigError, match="model"):
+        load_config(_write(tmp_path, '[engine]\nmodel = "fancy"\n'))
