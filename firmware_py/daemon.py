@@ -26,8 +26,10 @@ import time
 from collections import deque
 from typing import Callable
 
-import emdflow
 import numpy as np
+
+import emdflow
+from emdflow.cues import looming_cues
 
 from .config import Config
 from .links import FlowSample
@@ -80,6 +82,7 @@ class Stats:
         self.stage_max = dict.fromkeys(self.STAGES, 0)
         self.stage_n = dict.fromkeys(self.STAGES, 0)
         self.last_summary = None
+        self.last_cues = None
         self.started_host_us = host_us()
 
     def stage(self, name: str, us: int) -> None:
@@ -611,15 +614,24 @@ class Daemon:
             return
         t1 = host_us()
         summary = _summarize(field)
+        cues = looming_cues(field)
         t2 = host_us()
+        extras = ()
+        if self.config.link.extra_values:
+            ttc_s = cues.time_to_contact_s(self.fps) if self.fps > 0 else math.inf
+            extras = (("expansion", cues.expansion_rate * (self.fps or 1.0)),  # 1/s
+                      ("ttc_s", ttc_s if math.isfinite(ttc_s) else -1.0),
+                      ("balanceLR", cues.balance_lr), ("balanceTB", cues.balance_tb))
         self.link.submit(FlowSample(timestamp_us=frame.timestamp_us, capture_host_us=frame.capture_host_us,
-                                    flow_x=summary.flow_x, flow_y=summary.flow_y, quality=summary.quality))
+                                    flow_x=summary.flow_x, flow_y=summary.flow_y, quality=summary.quality,
+                                    extras=extras))
         t3 = host_us()
         self.stats.stage("engine", t1 - t0)
         self.stats.stage("summary", t2 - t1)
         self.stats.stage("link", t3 - t2)
         self.stats.processed += 1
         self.stats.last_summary = summary
+        self.stats.last_cues = cues
         self._prev = frame
         self._last_frame_host_s = now_s
         self.subset.observe_busy((t3 - t0) / 1e6, now_s)
@@ -653,6 +665,12 @@ class Daemon:
         lat50, lat99 = _percentiles(self.latencies_us if iv is None else self._interval_latencies)
         s = self.stats.last_summary
         flow = f"flow {s.flow_x:+.2f},{s.flow_y:+.2f} px/frame q {s.quality}" if s else "flow -"
+        c = self.stats.last_cues
+        if c is not None and c.detections:
+            ttc = c.time_to_contact_s(self.fps) if self.fps > 0 else math.inf
+            flow += (f" | expansion {c.expansion_rate * (self.fps or 1.0):+.3f}/s ttc "
+                     f"{'-' if not math.isfinite(ttc) else f'{ttc:.1f} s'} balance L/R {c.balance_lr:+.2f} "
+                     f"T/B {c.balance_tb:+.2f}")
         if iv is None:
             t = self.stats.totals()
             return (f"total: in {t['frames_in']} processed {t['processed']} skipped {t['skipped']} "
