@@ -163,7 +163,10 @@ def _program(ctx, device, layout: _Layout, debug: bool):
     cl = _import_cl()
     source = layout.header() + ("#define DEBUG_MATCHES 1\n" if debug else "")
     if "portable computing language" in device.platform.name.lower():
+        # PoCL compiles for the host CPU: compiler builtins beat its out-of-line library
         source += "#define EMD_INLINE_ATOMICS 1\n"
+        if device.type & _import_cl().device_type.CPU:
+            source += "#define EMD_X86_BUILTINS 1\n"
     source += "\n".join(kernel_source(name) for name in _STAGES)
     key = (device.int_ptr, source)
     with _LOCK:
@@ -224,9 +227,14 @@ class OpenCLEngine:
         self._k_states = cl.Kernel(prg, "ternary_states")
         self._k_evd = cl.Kernel(prg, "velocity_detectors")
         self._k_evidence = cl.Kernel(prg, "summary_evidence")
-        self._g_strips = (_ceil(width, 16),)
-        self._g_rows = (height,)
-        self._g_words = (_ceil(lay.NW, 8), height)
+        # Explicit work-group sizes: PoCL's own choice sometimes puts a whole frame in one
+        # or two groups and then runs it on one thread. Global sizes are padded to whole
+        # groups; the kernels return early past the frame.
+        strips, words = _ceil(width, 16), _ceil(lay.NW, 8)
+        self._l_strips, self._l_rows, self._l_words = (2,), (4,), (words, 8)
+        self._g_strips = (_ceil(strips, 2) * 2,)
+        self._g_rows = (_ceil(height, 4) * 4,)
+        self._g_words = (words, _ceil(height, 8) * 8)
         self.reset()
 
     def reset(self) -> None:
@@ -243,12 +251,13 @@ class OpenCLEngine:
         slot = np.int32(self.t % lay.SAT_SLOTS)
         cl.enqueue_copy(q, self.frame_buf, np.ascontiguousarray(frame), is_blocking=False)
         cl.enqueue_fill_buffer(q, self.result, np.uint8(0), lay.stats_offset, 4 * lay.n_stats)
-        self._k_prefilter(q, self._g_strips, None, self.frame_buf, self.h_buf, self.p_buf, self.sat_buf, slot)
-        self._k_integral(q, self._g_rows, None, self.sat_buf, slot)
-        self._k_states(q, self._g_rows, None, self.sat_buf, self.planes, self.p_buf, self.frame_buf, self.result, t,
-                       np.int32(self.theta_q))
-        self._k_evd(q, self._g_words, None, self.planes, self.result, self.debug_buf, t)
-        self._k_evidence(q, self._g_rows, None, self.result, self.sat_buf, t)
+        self._k_prefilter(q, self._g_strips, self._l_strips, self.frame_buf, self.h_buf, self.p_buf, self.sat_buf,
+                          slot)
+        self._k_integral(q, self._g_rows, self._l_rows, self.sat_buf, slot)
+        self._k_states(q, self._g_rows, self._l_rows, self.sat_buf, self.planes, self.p_buf, self.frame_buf,
+                       self.result, t, np.int32(self.theta_q))
+        self._k_evd(q, self._g_words, self._l_words, self.planes, self.result, self.debug_buf, t)
+        self._k_evidence(q, self._g_rows, self._l_rows, self.result, self.sat_buf, t)
         host = np.empty(lay.result_bytes, np.uint8)
         cl.enqueue_copy(q, host, self.result, is_blocking=True)
         self.t += 1

@@ -76,7 +76,16 @@ typedef struct __attribute__((packed)) { ulong v; } ulong_u;
 
 inline int pos_mod(int a, int m) { int r = a % m; return r < 0 ? r + m : r; }
 
-/* Pack 16 lane masks (all-ones = true) into the low 16 bits of a word. */
+/* Pack 16 lane masks (all-ones = true) into the low 16 bits of a word. On PoCL for x86
+ * the host defines EMD_X86_BUILTINS and this is one pmovmskb; the portable version
+ * reduces the lanes with ORs. */
+#if defined(EMD_X86_BUILTINS) && defined(__SSE2__)
+typedef char emd_v16qi __attribute__((__vector_size__(16)));
+inline uint pack16(short16 mask)
+{
+    return (uint)__builtin_ia32_pmovmskb128((emd_v16qi)convert_char16(mask)) & 0xFFFFu;
+}
+#else
 inline uint pack16(short16 mask)
 {
     const ushort16 bit = (ushort16)(1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 2048,
@@ -87,3 +96,4 @@ inline uint pack16(short16 mask)
     ushort2 a2 = a4.lo | a4.hi;
     return (uint)(a2.x | a2.y);
 }
+#endif

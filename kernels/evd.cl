@@ -33,6 +33,7 @@ __kernel void velocity_detectors(__global const uint *planes, __global char *res
 {
     const int i = get_global_id(0) * 8;   /* first word */
     const int y = get_global_id(1);
+    if (y >= H) return;  /* the global size is padded to whole work-groups */
     uint8 decided[2], sign[2], idx[2][4];
     for (int a = 0; a < 2; a++) {
         decided[a] = sign[a] = (uint8)(0u);

@@ -51,6 +51,7 @@ inline int nonzero_bytes(ulong v)
 __kernel void summary_evidence(__global char *result, __global const ushort *sat, int t)
 {
     const int y = get_global_id(0);
+    if (y >= H) return;  /* the global size is padded to whole work-groups */
     __global int *stats = (__global int *)(result + STATS_OFFSET);
     const int sampled = (y % EVIDENCE_ROW_STEP) == 0;
     /* HIST_COPIES histograms, one per work-group modulo the count: the two CPU threads

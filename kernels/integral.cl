@@ -4,6 +4,7 @@
 __kernel void integral_rows(__global ushort *sat, int slot)
 {
     const int y = get_global_id(0);
+    if (y >= H) return;  /* the global size is padded to whole work-groups */
     __global ushort *row = sat + slot * SAT_SIZE + (y + 1) * SSTRIDE + SPAD + 1;
     ushort acc = 0;
     for (int x = 0; x < W; x++) {

@@ -31,6 +31,7 @@ __kernel void prefilter_columns(__global const uchar *frame, __global uchar *hbu
                                 __global uchar *P, __global ushort *sat, int slot)
 {
     const int x0 = get_global_id(0) * 16;
+    if (x0 >= W) return;  /* the global size is padded to whole work-groups */
     __global ushort *S = sat + slot * SAT_SIZE + SPAD + 1 + x0;
     for (int y = 0; y < RADIUS && y < H; y++)
         STORE_UC16(hbuf + y * HSTRIDE + x0, convert_uchar16(horizontal16(frame + y * W, x0)));

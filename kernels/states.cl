@@ -20,6 +20,7 @@ __kernel void ternary_states(__global const ushort *sat, __global uint *planes,
                              __global char *result, int t, int theta_q)
 {
     const int y = get_global_id(0);
+    if (y >= H) return;  /* the global size is padded to whole work-groups */
     __global int *stats = (__global int *)(result + STATS_OFFSET);
     const short16 lane = (short16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
     __global const ushort *S_now = sat + (t % SAT_SLOTS) * SAT_SIZE;
