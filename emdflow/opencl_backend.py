@@ -92,11 +92,6 @@ def _pick_device(device):
     raise ValueError(f"OpenCL device {choice!r} not found among: {names}")
 
 
-def _spread(m: int) -> int:
-    """64-bit word whose byte j is bit j of the 8-bit value m."""
-    return sum(((m >> j) & 1) << (8 * j) for j in range(8))
-
-
 def _ceil(a: int, b: int) -> int:
     return -(-a // b)
 
@@ -152,7 +147,6 @@ class _Layout:
             "NBINS": ORIENTATION_BINS,
             "ORIENT_C": join(table[:, 0]),
             "ORIENT_S": join(table[:, 1]),
-            "SPREAD_TABLE": ", ".join(f"0x{_spread(m):016x}ul" for m in range(256)),
         }
 
     def header(self) -> str:
