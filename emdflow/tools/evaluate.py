@@ -32,7 +32,7 @@ coverage
 expansion error
     Zoom flights only: relative error of the expansion rate (image scale growth per frame,
     the value of :meth:`CameraFlight.truth`); DIS's is fitted to its dense field, the
-    engine's is read from ``summary.expansion_rate`` if the summary has one (else blank).
+    engine's is :func:`emdflow.cues.looming_cues`' ``expansion_rate``.
 
 Everything but :func:`main` is a pure function of its arguments.
 """
@@ -49,6 +49,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from ..cues import looming_cues
 
 __all__ = [
     "Variant",
@@ -425,7 +427,7 @@ def run_evaluation(config: EvalConfig, make_estimator, *, progress=None, engine_
                 emd_acc.add_field(field.u, field.v, tu, tv)
                 emd_acc.add_summary(s.flow_x, s.flow_y, s.quality, truth.flow_x, truth.flow_y)
                 if variant.expansion_rate:
-                    emd_acc.add_expansion(getattr(s, "expansion_rate", None), truth.expansion_rate)
+                    emd_acc.add_expansion(looming_cues(field).expansion_rate, truth.expansion_rate)
                 if dis is not None:
                     f = dis.calc(prev, frame, None)
                     pu, pv = truth_field(flight, t, at="previous")
