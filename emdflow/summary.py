@@ -23,10 +23,17 @@ Method
    ``β = |sin|`` of the angle between the flow and the edge normal — is measured on
    camera flights with known flow (``emdflow/tools/calibrate_summary.py``, stored in
    ``summary_calibration.npz`` next to this module) and mixed with a uniform outlier
-   probability. ``F`` maximises ``Σ_rows Σ_codes count · log P(code | c(F), ψ, β(F))``,
-   searched coarse-to-fine on a polar grid (log speed × direction) around the IoC
-   guess (4 levels of 9×9, 5×5, 5×5, 5×5 candidates; the per-row likelihood curves are
-   tabulated once per frame, so a candidate costs one interpolation per row). Rows whose
+   probability. ``F`` maximises ``Σ_rows w_row Σ_codes count · log P(code | c(F), ψ, β(F))``
+   with the tempered row weight ``w_row = n_row ** (row_exponent − 1)`` (a row of ``n``
+   detections counts like ``√n`` independent ones: neighbouring detections are not
+   independent, and a texture's few strong edge orientations would otherwise dominate),
+   searched coarse-to-fine on a polar grid (log speed × direction) around the IoC guess:
+   7×7 candidates over ±0.45 in log speed and ±24°, then 7×7 over ±0.12 and ±4.5°, then
+   the vertex of a parabola through the best candidate and its neighbours. Each row's β
+   is taken at the centre direction of a level. Directions are multiples of 0.1° and every
+   row's geometry (|c| per unit speed, its sign, the β node) is tabulated once per
+   direction; the per-row likelihood curves are computed once per frame (one batched
+   matrix product), so a level costs one (candidates × rows) interpolation. Rows whose
    normal is more than ``max_axis_angle`` (60°) from their axis are left out: their
    crossing speed ``c = n·F / n_a`` is huge and the detections there are dominated by
    texture details rather than edges. The table carries the band overlap and
@@ -51,21 +58,30 @@ other channel set (e.g. with temporal delays) the summary falls back to step 1 a
 
 Measured accuracy
 -----------------
-Numpy backend, 320×240, noise σ = 2, 9 speeds (1–13 px/frame) × 8 directions × 4
-evaluation textures (gravel, brick, grass, camera — the calibration never saw them) × 3
-frames; quality-0 frames count as 100 % error
-(``python -m emdflow.tools.calibrate_summary evaluate --offset 0`` / ``--offset 0.3``):
+OpenCL backend (bit-identical to numpy), 320×240, noise σ = 2, 9 speeds (1, 2, 3, 4, 5, 7,
+9, 11, 13 px/frame) × 4 evaluation textures (gravel, brick, grass, camera — the
+calibration never saw them) × 8 directions × 6 frames = 1728 frames per set; quality-0
+frames count as 100 % error (none occurred: coverage 100 %)
+(``python -m emdflow.tools.calibrate_summary evaluate --offset 0`` / ``--offset 0.3`` /
+``--random``). Median relative error, median direction error:
 
-==========================  ===================  ==============
-directions                  IoC only (previous)  this summary
-==========================  ===================  ==============
-multiples of 45°            7.9 %, 0.93°         9.1 %, 0.67°
-multiples of 45° + 0.3 rad  21 %, 11°            8.9 %, 2.4°
-==========================  ===================  ==============
+============================  ==============  ==============
+directions                    previous ML     this summary
+============================  ==============  ==============
+multiples of 45°              8.7 %, 1.01°    9.1 %, 1.33°
+multiples of 45° + 0.3 rad    9.4 %, 2.68°    9.1 %, 2.69°
+random (seeded)               9.5 %, 2.56°    9.2 %, 2.42°
+============================  ==============  ==============
 
-Off-axis, 1–7 px/frame are within 5–10 % and 1–3°; 9–13 px/frame remain 13–30 % and
-5–7° (above ~11 px/frame only the 13 px scale fires; the quality says so). Cost ≈ 1 ms
-per call on the host (IoC alone: 0.15 ms).
+("previous ML": the former 4-level search with untempered rows and β nodes
+0/.25/.5/.7/.85/1, fitted on the same flights; the IoC guess alone is 21 % / 11° off-axis.
+Tempering trades ~0.3° along the axes for better off-axis estimates; ``row_exponent=1``
+restores the untempered likelihood.) 1–7 px/frame
+are within 5–12 % and 1–3°; at 9–13 px/frame only the top scales fire: 8–18 % and 2–7°,
+and 13 px/frame 25–40 % (the quality says so: frames of quality < 64 have a median error
+of ~40 %). Brick (few, aligned, periodic edges) is the hardest texture. Cost ≈ 0.23 ms
+per call on the 2-core host (IoC guess ~0.03 ms, per-frame curves ~0.04 ms, search
+~0.1 ms); the former 4-level search took ~0.8 ms.
 
 References
 ----------
@@ -150,7 +166,9 @@ class SummaryOptions:
         Huber threshold of the IoC fit: ``max(floor, fraction · |F|)`` px/frame
         (the detector's speed bands are relative: scale ``k`` fires from ~k/2 to ~1.5k).
     iterations : int
-        IRLS iterations of the IoC fit.
+        IRLS iterations of the IoC fit when it is the answer (uncalibrated channels).
+    guess_iterations : int
+        IRLS iterations of the IoC fit when it only starts the likelihood search.
     likelihood : bool
         Refine the IoC guess by calibrated maximum likelihood (method step 2). Ignored
         (IoC only) when the channel set is not the calibrated one.
@@ -170,6 +188,9 @@ class SummaryOptions:
     top_speed : float
         Speed (px/frame) above which the fastest scale alone fires and the expected error
         grows; the expected error gains ``(|F| / top_speed − 1) · 0.5`` above it.
+    row_exponent : float
+        A histogram row (axis, orientation) with ``n`` detections weighs like
+        ``n ** row_exponent`` independent detections in the likelihood (1: untempered).
     """
 
     min_textured: float = 0.01
@@ -181,12 +202,14 @@ class SummaryOptions:
     huber_fraction: float = 0.15
     huber_floor: float = 0.3
     iterations: int = 12
+    guess_iterations: int = 2
     likelihood: bool = True
     max_axis_angle: float = 60.0
     outlier_probability: float = 0.01
-    overdispersion: float = 1.0
+    overdispersion: float = 0.7
     quality_error: float = 0.15
     top_speed: float = 11.0
+    row_exponent: float = 0.5
 
 
 _DEFAULT_OPTIONS = SummaryOptions()
@@ -196,103 +219,169 @@ _BLIND = FlowSummary()
 # ---------------------------------------------------------------------------------------
 # Step 1: intersection of constraints (initial guess, and the fallback)
 # ---------------------------------------------------------------------------------------
-def _constraint_tables(params: EngineParams):
-    """Per histogram bin: normal (cos, sin) and right-hand side, cached per params."""
-    key = (params.speeds,)
-    hit = _TABLE_CACHE.get(key)
-    if hit is not None:
-        return hit
-    phi = EngineParams.orientation_centres()
-    cos, sin = np.cos(phi), np.sin(phi)
-    speeds = np.asarray(params.speeds)
-    n_codes = 2 * len(speeds)
-    signed = np.repeat(speeds, 2) * np.tile([1.0, -1.0], len(speeds))  # code 2c / 2c+1
-    nx = np.broadcast_to(cos, (2, n_codes, cos.size))
-    ny = np.broadcast_to(sin, (2, n_codes, sin.size))
-    axis_component = np.stack([np.broadcast_to(cos, (n_codes, cos.size)),
-                               np.broadcast_to(sin, (n_codes, sin.size))])
-    rhs = signed[None, :, None] * axis_component
-    tables = (nx.ravel().copy(), ny.ravel().copy(), rhs.ravel().copy())
-    _TABLE_CACHE[key] = tables
-    return tables
+class _Constraints:
+    """Per histogram bin (flat index of ``hist[axis, code, bin]``): the constraint's
+    normal (cos, sin), right-hand side and the products the normal equations sum."""
+
+    def __init__(self, params: EngineParams):
+        phi = EngineParams.orientation_centres()
+        cos, sin = np.cos(phi), np.sin(phi)
+        speeds = np.asarray(params.speeds)
+        n_codes = 2 * len(speeds)
+        signed = np.repeat(speeds, 2) * np.tile([1.0, -1.0], len(speeds))  # code 2c / 2c+1
+        nx = np.broadcast_to(cos, (2, n_codes, cos.size)).ravel()
+        ny = np.broadcast_to(sin, (2, n_codes, sin.size)).ravel()
+        axis_component = np.stack([np.broadcast_to(cos, (n_codes, cos.size)),
+                                   np.broadcast_to(sin, (n_codes, sin.size))])
+        rhs = (signed[None, :, None] * axis_component).ravel()
+        # rows: nx, ny, -rhs (residual = [U, V, 1] @ rows) and the normal-equation products
+        self.lin = np.ascontiguousarray(np.stack([nx, ny, -rhs]).T)  # (bins, 3)
+        self.products = np.ascontiguousarray(
+            np.stack([nx * nx, nx * ny, ny * ny, nx * rhs, ny * rhs]).T)  # (bins, 5)
 
 
-_TABLE_CACHE: dict = {}
+_CONSTRAINTS: dict = {}
 
 
-def _robust_fit(nx, ny, rhs, w0, opts: SummaryOptions):
-    """Huber IRLS for ``F`` minimising Σ w ρ(n·F − rhs); returns (U, V, inlier share, cond)."""
+def _constraints(params: EngineParams) -> _Constraints:
+    hit = _CONSTRAINTS.get(params)
+    if hit is None:
+        hit = _CONSTRAINTS[params] = _Constraints(params)
+    return hit
+
+
+def _robust_fit(cons: _Constraints, used: np.ndarray, w0: np.ndarray, opts: SummaryOptions,
+                iterations: int):
+    """Huber IRLS for ``F`` minimising Σ w ρ(n·F − rhs) over the bins ``used`` with counts
+    ``w0``; returns (U, V, inlier share, geometry) or None when ``F`` is not determined."""
+    lin = cons.lin[used]
+    prod = cons.products[used]
     w = w0
     U = V = 0.0
-    products = np.stack([nx * nx, nx * ny, ny * ny, nx * rhs, ny * rhs])
-    for it in range(opts.iterations + 1):
-        sxx, sxy, syy, bx, by = products @ w
+    uv1 = np.array([0.0, 0.0, 1.0])
+    total = float(w0.sum())
+    geometry = None
+    for it in range(iterations + 1):
+        sxx, sxy, syy, bx, by = w @ prod
         det = sxx * syy - sxy * sxy
-        if det <= 1e-9 * max(1.0, (sxx + syy) ** 2):
+        trace = sxx + syy
+        if det <= 1e-9 * max(1.0, trace * trace):
             return None
+        if geometry is None:  # of the unweighted evidence: 1 = isotropic, 0 = one direction
+            geometry = 2.0 * math.sqrt(det) / trace
         U_new = (syy * bx - sxy * by) / det
         V_new = (sxx * by - sxy * bx) / det
-        converged = it > 0 and abs(U_new - U) + abs(V_new - V) < 1e-3
+        converged = it > 0 and abs(U_new - U) + abs(V_new - V) < 1e-3 * max(1.0, abs(U) + abs(V))
         U, V = U_new, V_new
-        res = np.abs(nx * U + ny * V - rhs)
+        uv1[0], uv1[1] = U, V
+        res = np.abs(lin @ uv1)
         c = max(opts.huber_floor, opts.huber_fraction * math.hypot(U, V))
-        w = w0 * np.minimum(1.0, c / np.maximum(res, 1e-12))
-        if converged:
+        if converged or it == iterations:
             break
-    inliers = float(np.dot(w0, res <= c)) / max(1e-12, float(w0.sum()))
-    trace = sxx + syy
-    geometry = 2.0 * math.sqrt(max(0.0, det)) / trace if trace > 0 else 0.0  # 1 = isotropic
+        w = w0 * np.minimum(1.0, c / np.maximum(res, 1e-12))
+    inliers = float(w0 @ (res <= c)) / max(1e-12, total)
     return U, V, inliers, geometry
 
 
 # ---------------------------------------------------------------------------------------
 # Step 2: calibrated maximum likelihood
 # ---------------------------------------------------------------------------------------
+#: Directions of the likelihood search are multiples of 360° / _DIRECTIONS (0.25°); the
+#: per-row geometry of every such direction is tabulated once.
+_DIRECTIONS = 1440
+_DIR_STEP = 2.0 * math.pi / _DIRECTIONS
+#: Padding of the direction tables (more than the widest search span).
+_PAD = 160
+#: Coarse-to-fine search: (± log-speed span, direction step in _DIRECTIONS units, points
+#: per axis). Level 0 spans ±0.45 in log speed and ±24° around the IoC guess; the last
+#: level is refined by a parabola through the best point and its neighbours.
+_SEARCH_LEVELS = ((0.45, 32, 7), (0.12, 6, 7))
+#: Level whose grid gives the curvature of the log-likelihood (expected error).
+_CURVATURE_LEVEL = 1
+
+
+def _parabola_weights(m: int) -> np.ndarray:
+    """Weights giving the quadratic coefficient of a least-squares parabola through m
+    equally spaced points at unit spacing (``a = weights @ y``)."""
+    x = np.arange(m) - (m - 1) / 2.0
+    z = x * x - np.mean(x * x)
+    return z / np.dot(z, z)
+
+
 class _LikelihoodModel:
     """The calibration table laid out per histogram row, for one (table, options) pair.
 
-    Rows are ``axis · 64 + orientation bin``. ``logp[row, code, β node · 2U + j]`` is the
-    log-probability of ``code`` for ``|c|`` at u-node ``j`` (``c > 0`` for ``j < U``,
-    ``c < 0`` for ``j ≥ U``).
+    Rows are the usable ``axis · 64 + orientation bin``. ``logp[row, code, β node · 2U + j]``
+    is the log-probability of ``code`` for ``|c|`` at u-node ``j`` (``c > 0`` for ``j < U``,
+    ``c < 0`` for ``j ≥ U``). Per search direction ``d`` (0.1° steps) and row: ``absg[d]``
+    = |c| / |F| (``c = F · n / n_a``), ``jbase[d]`` the offset of the row's curve (and of
+    its sign half) in the flattened per-frame curves, and ``bk[d]``, ``bf[d]`` the β node
+    and weight of the row's β.
     """
 
-    def __init__(self, table: dict, max_axis_angle: float, outlier: float):
+    def __init__(self, table: dict, max_axis_angle: float, outlier: float, params: EngineParams):
         prob = np.asarray(table["prob"], np.float64)  # (ψ, β, u, category)
         psi_nodes = np.asarray(table["psi_nodes_deg"], np.float64)
-        self.beta_nodes = np.asarray(table["beta_nodes"], np.float64)
+        beta_nodes = np.asarray(table["beta_nodes"], np.float64)
         u_nodes = np.asarray(table["u_nodes"], np.float64)
         self.u_offset = float(table["u_offset"])
         self.u0 = float(u_nodes[0])
         self.du = float(u_nodes[1] - u_nodes[0])
-        self.n_u = len(u_nodes)
+        self.n_u = n_u = len(u_nodes)
         n_cat = prob.shape[-1]
         phi = EngineParams.orientation_centres()
         cos, sin = np.cos(phi), np.sin(phi)
-        self.nx = np.concatenate([cos, cos])
-        self.ny = np.concatenate([sin, sin])
-        self.na = np.concatenate([cos, sin])  # signed axis component of the normal
-        psi = np.degrees(np.arccos(np.clip(np.abs(self.na), 0.0, 1.0)))
-        self.usable = psi < max_axis_angle
+        nx = np.concatenate([cos, cos])
+        ny = np.concatenate([sin, sin])
+        na = np.concatenate([cos, sin])  # signed axis component of the normal
+        psi = np.degrees(np.arccos(np.clip(np.abs(na), 0.0, 1.0)))
+        self.rows = rows = np.nonzero(psi < max_axis_angle)[0]
+        n_rows = rows.size
         i = np.clip(np.searchsorted(psi_nodes, psi, side="right") - 1, 0, len(psi_nodes) - 2)
         f = ((psi - psi_nodes[i]) / (psi_nodes[i + 1] - psi_nodes[i]))[:, None, None, None]
         p_row = (1.0 - f) * prob[i] + f * prob[i + 1]  # (row, β, u, category)
         p_row = (1.0 - outlier) * p_row + outlier / n_cat
         lp = np.log(p_row)
-        # category = code for c > 0, code ^ 1 (sign flipped) for c < 0
-        swap = np.arange(n_cat) ^ 1
-        both = np.concatenate([lp, lp[..., swap]], axis=2)  # (row, β, 2U, code)
-        n_rows, n_beta = both.shape[:2]
-        self.n_beta = n_beta
-        self.rows = np.nonzero(self.usable)[0]
+        self.n_beta = n_beta = lp.shape[1]
+        # (row, code, β node · U + u): log-probability of a code for c > 0; for c < 0 the
+        # category is the code with its sign flipped, so the curves of c < 0 come from the
+        # counts with codes swapped (code ^ 1) against the same table
         self.logp = np.ascontiguousarray(
-            both[self.rows].transpose(0, 3, 1, 2).reshape(self.rows.size, n_cat, -1)
-        ).astype(np.float32)
-        r = self.rows
-        # c = (n·F) / n_a = F · (nx, ny) / n_a
-        self.gain = np.stack([self.nx[r] / self.na[r], self.ny[r] / self.na[r]])  # (2, R)
-        self.nx_r, self.ny_r = self.nx[r], self.ny[r]
-        self.base = np.arange(r.size) * (2 * self.n_u)
-        self.flat_base = np.arange(r.size) * n_beta
+            lp[rows].transpose(0, 3, 1, 2).reshape(n_rows, n_cat, -1)).astype(np.float32)
+        # where each usable row's counts are in hist.ravel() (hist[axis, code, bin]), as
+        # (row, [codes, codes ^ 1])
+        n_bins = phi.size
+        axis, b = np.divmod(rows, n_bins)
+        codes = np.arange(n_cat)
+        index = (axis[:, None] * n_cat + codes[None, :]) * n_bins + b[:, None]
+        self.hist_index = np.stack([index, index[:, codes ^ 1]], axis=1)  # (R, 2, codes)
+        # per-direction geometry, padded by _PAD directions on both sides (index d + _PAD
+        # is direction d, for d in -_PAD .. _DIRECTIONS + _PAD)
+        ang = (np.arange(_DIRECTIONS + 2 * _PAD) - _PAD) * _DIR_STEP
+        ca, sa = np.cos(ang)[:, None], np.sin(ang)[:, None]
+        vn = ca * nx[rows] + sa * ny[rows]  # (D, R) normal speed per unit flow
+        g = vn / na[rows]
+        self.absg = np.abs(g).astype(np.float32)
+        self.jbase = (np.arange(n_rows) * (2 * n_u) + np.where(g < 0, n_u, 0)).astype(np.int32)
+        beta = np.sqrt(np.clip(1.0 - vn * vn, 0.0, 1.0))
+        bi = np.clip(np.searchsorted(beta_nodes, beta, side="right") - 1, 0, n_beta - 2)
+        bf = (beta - beta_nodes[bi]) / (beta_nodes[bi + 1] - beta_nodes[bi])
+        # per (row, sign): weight of the upper β node, and the lower node's row in the
+        # frame's curves laid out as ((row · 2 + sign) · β node, u)
+        self.bf = np.repeat(bf, 2, axis=1)[..., None].astype(np.float32)  # (D, R·2, 1)
+        sign_rows = (np.arange(n_rows)[:, None] * 2 + np.arange(2)[None, :]).ravel()
+        self.bk = (sign_rows[None, :] * n_beta + np.repeat(bi, 2, axis=1)).astype(np.int32)
+        self.inv_du = np.float32(1.0 / self.du)
+        self.u0_du = np.float32(self.u0 / self.du)
+        self.u_top = np.float32(n_u - 1 - 1e-3)
+        # search grids: (log-speed offsets, direction step, its offsets, exp(offsets),
+        # padded direction offsets)
+        self.levels = []
+        for dl, dstep, m in _SEARCH_LEVELS:
+            ls = np.linspace(-dl, dl, m)
+            doff = (np.arange(m) - (m - 1) // 2) * dstep
+            self.levels.append((ls, doff, dstep, np.exp(ls).astype(np.float32), doff + _PAD))
+        self.parabola = [_parabola_weights(m) for _, _, m in _SEARCH_LEVELS]
 
 
 _MODEL_CACHE: dict = {}
@@ -308,102 +397,106 @@ def _load_calibration():
 
 def _model_for(params: EngineParams, opts: SummaryOptions):
     """The likelihood model for these channels, or None when they are not calibrated."""
-    key = (params.speeds, opts.max_axis_angle, opts.outlier_probability)
+    key = (params, opts.max_axis_angle, opts.outlier_probability)
     if key in _MODEL_CACHE:
         return _MODEL_CACHE[key]
     table = _load_calibration()
     model = None
     if tuple(params.speeds) == tuple(float(s) for s in table["speeds"]):
-        model = _LikelihoodModel(table, opts.max_axis_angle, opts.outlier_probability)
+        model = _LikelihoodModel(table, opts.max_axis_angle, opts.outlier_probability, params)
     _MODEL_CACHE[key] = model
     return model
 
 
-def _search_grid(dl: float, da: float, m: int):
-    """Offsets of one search level: log-speed steps, exp of them, cos/sin of the turns."""
-    ls = np.linspace(-dl, dl, m)
-    aa = np.radians(np.linspace(-da, da, m))
-    LS, AA = np.meshgrid(ls, aa, indexing="ij")
-    return ls, aa, np.exp(LS.ravel()), np.cos(AA.ravel()), np.sin(AA.ravel())
+def _row_curves(model: _LikelihoodModel, hist: np.ndarray, exponent: float):
+    """Per-row log-likelihood curves of one frame, shape ((rows · 2 + sign) · β nodes, U)
+    (sign 0: c > 0, 1: c < 0), plus the detection count and the number of active rows.
+
+    With ``exponent`` < 1 a row of ``n`` detections weighs ``n ** exponent`` (its counts
+    are scaled by ``n ** (exponent − 1)``): neighbouring detections are not independent."""
+    h = hist.ravel().take(model.hist_index).astype(np.float32)  # (R, 2, codes)
+    n_row = np.add.reduce(h[:, 0, :], axis=1)
+    active = int(np.count_nonzero(n_row))
+    count = float(np.add.reduce(n_row))
+    if exponent != 1.0:
+        h *= (np.maximum(n_row, 1.0) ** (exponent - 1.0))[:, None, None]
+    curves = np.matmul(h, model.logp).reshape(-1, model.n_u)
+    return curves, count, active
 
 
-#: Coarse-to-fine search: (± log-speed span, ± direction span in degrees, points per side).
-_SEARCH_LEVELS = ((0.45, 24.0, 9), (0.1, 5.0, 5), (0.03, 1.5, 5), (0.008, 0.4, 5))
-_SEARCH_GRIDS = [_search_grid(*lvl) for lvl in _SEARCH_LEVELS]
-#: Level whose grid gives the curvature of the log-likelihood (expected error).
-_CURVATURE_LEVEL = 1
+def _loglik_grid(model: _LikelihoodModel, curves: np.ndarray, log_s: float, d0: int, level):
+    """Log-likelihood on one search level around (log speed ``log_s``, direction index
+    ``d0``), with each row's β taken at ``d0``: shape (speeds, directions)."""
+    es, doff = level[3], level[4]
+    bk = model.bk[d0 + _PAD]
+    cur = curves.take(bk, axis=0)  # (R · 2, U) at the β node below ...
+    hi = curves.take(bk + 1, axis=0)  # ... and above
+    hi -= cur
+    hi *= model.bf[d0 + _PAD]
+    cur += hi  # β-interpolated curves
+    ds = doff + d0  # tables are padded: no wrap-around
+    x = np.multiply.outer(es * math.exp(log_s), model.absg.take(ds, axis=0))  # (S, A, R) |c|
+    x += model.u_offset
+    np.log(x, out=x)
+    x *= model.inv_du
+    x -= model.u0_du
+    np.minimum(x, model.u_top, out=x)
+    np.maximum(x, 0.0, out=x)
+    j = x.astype(np.intp)
+    x -= j
+    j += model.jbase.take(ds, axis=0)
+    lo = cur.take(j)
+    j += 1
+    hi = cur.take(j)
+    hi -= lo
+    hi *= x
+    lo += hi
+    return lo.sum(axis=2)
 
 
-class _RowCurves:
-    """Per-row log-likelihood curves of one frame, as functions of (β, signed |c|)."""
-
-    def __init__(self, model: _LikelihoodModel, hist: np.ndarray):
-        h = hist.transpose(0, 2, 1).reshape(-1, hist.shape[1])[model.rows]  # (row, code)
-        self.model = model
-        self.count = float(h.sum())
-        self.active = int(np.count_nonzero(h.sum(axis=1)))
-        # (R, 1, codes) @ (R, codes, β·2U) -> (R, β·2U)
-        self.curves = np.matmul(h.astype(np.float32)[:, None, :], model.logp)[:, 0, :]
-
-    def at_direction(self, angle: float) -> np.ndarray:
-        """Curves over signed |c| (R, 2U) with β interpolated for a flow at ``angle``."""
-        m = self.model
-        vn = m.nx_r * math.cos(angle) + m.ny_r * math.sin(angle)
-        beta = np.sqrt(np.maximum(1.0 - vn * vn, 0.0))
-        nodes = m.beta_nodes
-        i = np.minimum(np.searchsorted(nodes, beta, side="right") - 1, len(nodes) - 2)
-        f = ((beta - nodes[i]) / (nodes[i + 1] - nodes[i]))[:, None]
-        c = self.curves.reshape(-1, 2 * m.n_u)  # (R·β, 2U)
-        k = m.flat_base + i
-        return (1.0 - f) * c[k] + f * c[k + 1]
-
-    def loglik(self, curves: np.ndarray, fx: np.ndarray, fy: np.ndarray) -> np.ndarray:
-        """Log-likelihood of candidate flows (M,) given curves at their direction."""
-        m = self.model
-        c = np.stack([fx, fy], axis=1) @ m.gain  # (M, R) signed crossing speeds
-        x = np.log(np.abs(c) + m.u_offset)
-        x -= m.u0
-        x *= 1.0 / m.du
-        np.clip(x, 0.0, m.n_u - 1 - 1e-9, out=x)
-        j = x.astype(np.intp)
-        x -= j  # fraction
-        j += np.where(c < 0, m.n_u, 0)
-        j += m.base
-        flat = curves.ravel()
-        lo = flat[j]
-        return (lo + x * (flat[j + 1] - lo)).sum(axis=1)
+def _vertex(l0: float, l1: float, l2: float) -> float:
+    """Offset (in steps, within ±0.5) of the vertex of the parabola through 3 points."""
+    den = l0 - 2.0 * l1 + l2
+    if den >= 0.0:
+        return 0.0
+    return max(-0.5, min(0.5, 0.5 * (l0 - l2) / den))
 
 
-def _curvature_sigma(L: np.ndarray, step: float, axis: int) -> float:
+def _likelihood_fit(model: _LikelihoodModel, curves: np.ndarray, U0: float, V0: float):
+    """Coarse-to-fine polar search; returns (U, V, σ of log-speed, σ of direction)."""
+    log_s = math.log(max(math.hypot(U0, V0), 0.5))
+    d = int(round(math.atan2(V0, U0) / _DIR_STEP)) % _DIRECTIONS
+    sig_s = sig_a = math.inf
+    last = len(model.levels) - 1
+    for level_index, level in enumerate(model.levels):
+        L = _loglik_grid(model, curves, log_s, d, level)
+        ls, doff = level[0], level[1]
+        best = int(np.argmax(L))
+        bi, bj = divmod(best, L.shape[1])
+        if level_index == _CURVATURE_LEVEL:
+            weights = model.parabola[level_index]
+            sig_s = _curvature_sigma(weights, L[:, bj], ls[1] - ls[0])
+            sig_a = _curvature_sigma(weights, L[bi, :], level[2] * _DIR_STEP)
+        fs = fa = 0.0
+        if level_index == last:  # sub-step vertex of the likelihood at the finest level
+            if 0 < bi < L.shape[0] - 1:
+                fs = _vertex(L[bi - 1, bj], L[bi, bj], L[bi + 1, bj])
+            if 0 < bj < L.shape[1] - 1:
+                fa = _vertex(L[bi, bj - 1], L[bi, bj], L[bi, bj + 1])
+        log_s += ls[bi] + fs * (ls[1] - ls[0])
+        d = (d + int(doff[bj])) % _DIRECTIONS
+    angle = (d + fa * level[2]) * _DIR_STEP
+    s = math.exp(log_s)
+    return s * math.cos(angle), s * math.sin(angle), sig_s, sig_a
+
+
+def _curvature_sigma(weights: np.ndarray, prof: np.ndarray, step: float) -> float:
     """Standard error along one axis of a grid of log-likelihoods: 1/sqrt(−L'') from a
     least-squares parabola through the grid's profile at its maximum."""
-    bi = np.unravel_index(int(np.argmax(L)), L.shape)
-    prof = L[:, bi[1]] if axis == 0 else L[bi[0], :]
-    x = (np.arange(prof.size) - (prof.size - 1) / 2) * step
-    a = np.polyfit(x, prof, 2)[0]
+    half = (prof.size - 1) / 2.0 * step
+    a = float(weights @ prof) / (step * step)
     # a flat or convex profile: the data do not pin the maximum within the grid's span
-    return 1.0 / math.sqrt(-2.0 * a) if a < -0.5 / x[-1] ** 2 else 2.0 * x[-1]
-
-
-def _likelihood_fit(curves: _RowCurves, U0: float, V0: float):
-    """Coarse-to-fine polar search; returns (U, V, σ of log-speed, σ of direction)."""
-    s = max(math.hypot(U0, V0), 0.5)
-    a = math.atan2(V0, U0)
-    sig_s = sig_a = math.inf
-    for level, (ls, aa, es, ca, sa) in enumerate(_SEARCH_GRIDS):
-        cur = curves.at_direction(a)
-        sp = s * es
-        cos_a, sin_a = math.cos(a), math.sin(a)
-        fx = sp * (cos_a * ca - sin_a * sa)
-        fy = sp * (sin_a * ca + cos_a * sa)
-        L = curves.loglik(cur, fx, fy).reshape(ls.size, aa.size)
-        bi, bj = np.unravel_index(int(np.argmax(L)), L.shape)
-        if level == _CURVATURE_LEVEL:
-            sig_s = _curvature_sigma(L, ls[1] - ls[0], 0)
-            sig_a = _curvature_sigma(L, aa[1] - aa[0], 1)
-        s = s * math.exp(ls[bi])
-        a = a + aa[bj]
-    return s * math.cos(a), s * math.sin(a), sig_s, sig_a
+    return 1.0 / math.sqrt(-2.0 * a) if a < -0.5 / half ** 2 else 2.0 * half
 
 
 # ---------------------------------------------------------------------------------------
@@ -440,30 +533,33 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
         return _BLIND
     q_texture = min(1.0, textured / opts.full_textured)
     hist = field.histogram
-    counts = hist.ravel().astype(np.float64)
+    flat = hist.ravel()
+    used = np.flatnonzero(flat)
+    counts = flat[used].astype(np.float64)
     n = int(counts.sum())
+    params = field.params
     if n < opts.min_detections:
         # Few detections: either the scene is static (below the detector's floor) or the
         # motion is one the detector cannot follow (too fast, flicker): tell them apart by
         # how many scale-1 receptors changed at all.
-        params = field.params
         c1 = params.channels.index((params.scales[0], 1))
         if field.changed_fraction[c1] <= opts.static_changed:
             return FlowSummary(0.0, 0.0, int(round(255 * q_texture * 0.75)), n, True, 1.0, 0.0)
         return FlowSummary(detections=n)
-    nx, ny, rhs = _constraint_tables(field.params)
-    used = counts > 0
-    fit = _robust_fit(nx[used], ny[used], rhs[used], counts[used], opts)
+    model = _model_for(params, opts) if opts.likelihood else None
+    fit = _robust_fit(_constraints(params), used, counts, opts,
+                      opts.iterations if model is None else opts.guess_iterations)
     if fit is None:
         return FlowSummary(detections=n)
     U, V, inliers, geometry = fit
     q_evidence = min(1.0, n / opts.full_detections)
     q_geometry = min(1.0, 2.0 * geometry)
 
-    model = _model_for(field.params, opts) if opts.likelihood else None
-    curves = _RowCurves(model, hist) if model is not None else None
-    if curves is not None and curves.active >= 2 and curves.count >= opts.min_detections:
-        U1, V1, sig_s, sig_a = _likelihood_fit(curves, U, V)
+    count = active = 0
+    if model is not None:
+        curves, count, active = _row_curves(model, hist, opts.row_exponent)
+    if active >= 2 and count >= opts.min_detections:
+        U1, V1, sig_s, sig_a = _likelihood_fit(model, curves, U, V)
         speed = math.hypot(U1, V1)
         disagreement = math.hypot(U1 - U, V1 - V) / max(speed, 0.5)
         expected = math.hypot(opts.overdispersion * math.hypot(sig_s, sig_a), 0.5 * disagreement)

@@ -1,0 +1,214 @@
+"""Tests of the global flow summary (emdflow/summary.py)."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+import emdflow
+from emdflow.synthetic import CameraFlight
+from emdflow.field import FlowField
+from emdflow.params import EngineParams
+from emdflow.reference import STAT_FIRST_CHANGED, STAT_SATURATED, STAT_TEXTURED
+from emdflow.summary import CALIBRATION_FILE, SummaryOptions, summarize
+
+W, H = 320, 240
+PARAMS = EngineParams()
+
+
+def _stats(params=PARAMS, textured=0.5, saturated=0.0, changed=0.05):
+    stats = np.zeros(STAT_FIRST_CHANGED + len(params.channels), np.int64)
+    stats[STAT_TEXTURED] = int(textured * ((H - 2) // 2) * (W - 2))
+    stats[STAT_SATURATED] = int(saturated * ((H + 1) // 2) * W)
+    stats[STAT_FIRST_CHANGED:] = int(changed * H * W)
+    return stats
+
+
+def _field(hist, stats=None, params=PARAMS, frame_index=10):
+    codes = np.zeros((H, W), np.int8)
+    return FlowField(codes, codes, _stats(params) if stats is None else stats,
+                     hist, params, frame_index)
+
+
+def _interp(x, nodes):
+    x = min(max(x, nodes[0]), nodes[-1])
+    i = min(int(np.searchsorted(nodes, x, side="right")) - 1, len(nodes) - 2)
+    return i, (x - nodes[i]) / (nodes[i + 1] - nodes[i])
+
+
+def model_histogram(flow, per_row=150, seed=0, noise=0.0):
+    """Histogram drawn from the calibrated model ``P(code | c, ψ, β)`` for a known flow.
+
+    Written independently of summary.py's vectorised layout (plain loops over axes and
+    orientation bins, trilinear interpolation of the stored table), so a sign, row or
+    axis mix-up in the summary makes the recovery test fail.
+    """
+    rng = np.random.default_rng(seed)
+    z = np.load(CALIBRATION_FILE)
+    prob, psi_n, beta_n, u_n = z["prob"], z["psi_nodes_deg"], z["beta_nodes"], z["u_nodes"]
+    off = float(z["u_offset"])
+    fx, fy = flow
+    speed = math.hypot(fx, fy)
+    hist = np.zeros((2, 14, 64), np.int64)
+    for b, phi in enumerate(EngineParams.orientation_centres()):
+        n = (math.cos(phi), math.sin(phi))
+        vn = n[0] * fx + n[1] * fy
+        beta = math.sqrt(max(0.0, 1.0 - (vn / speed) ** 2))
+        for axis in (0, 1):
+            na = n[axis]
+            c = vn / na
+            psi = math.degrees(math.acos(min(1.0, abs(na))))
+            pi, pf = _interp(psi, psi_n)
+            bi, bf = _interp(beta, beta_n)
+            ui, uf = _interp(math.log(abs(c) + off), u_n)
+            p = np.zeros(14)
+            for dp, wp in ((0, 1 - pf), (1, pf)):
+                for db, wb in ((0, 1 - bf), (1, bf)):
+                    for du, wu in ((0, 1 - uf), (1, uf)):
+                        p += wp * wb * wu * prob[pi + dp, bi + db, ui + du]
+            p /= p.sum()
+            cat = rng.multinomial(per_row, p)
+            codes = np.arange(14) if c >= 0 else np.arange(14) ^ 1  # category -> code
+            hist[axis, codes, b] += cat
+            if noise:
+                hist[axis, :, b] += rng.poisson(noise * per_row / 14, 14)
+    return hist
+
+
+@pytest.mark.parametrize("flow", [(3.0, 0.0), (4.0, 1.3), (-2.1, 5.5), (0.9, -0.5),
+                                  (-6.5, -3.7), (8.0, 4.2)])
+def test_recovers_flow_from_model_histograms(flow):
+    s = summarize(_field(model_histogram(flow)))
+    speed = math.hypot(*flow)
+    assert s.quality > 0 and not s.static
+    assert math.hypot(s.flow_x - flow[0], s.flow_y - flow[1]) / speed < 0.04
+    angle = math.degrees(math.atan2(s.flow_y, s.flow_x) - math.atan2(flow[1], flow[0]))
+    assert abs((angle + 180) % 360 - 180) < 1.5
+    assert 0 < s.expected_error < 0.15
+
+
+def test_likelihood_beats_ioc_on_model_histograms_off_axis():
+    """The IoC guess alone is biased off-axis; the likelihood fit removes the bias."""
+    flow = (4.0, 1.3)
+    hist = model_histogram(flow, seed=3)
+    ml = summarize(_field(hist))
+    ioc = summarize(_field(hist), options=SummaryOptions(likelihood=False))
+    err_ml = math.hypot(ml.flow_x - flow[0], ml.flow_y - flow[1])
+    err_ioc = math.hypot(ioc.flow_x - flow[0], ioc.flow_y - flow[1])
+    assert err_ml < 0.5 * err_ioc
+
+
+def test_quality_falls_when_evidence_is_noisy():
+    flow = (-2.1, 5.5)
+    clean = summarize(_field(model_histogram(flow, per_row=150, seed=1)))
+    noisy = summarize(_field(model_histogram(flow, per_row=6, seed=1, noise=1.5)))
+    assert noisy.expected_error > clean.expected_error
+    assert 0 < noisy.quality < clean.quality
+
+
+def test_blank_frame_gives_zero():
+    s = summarize(_field(np.zeros((2, 14, 64), np.int64), stats=_stats(textured=0.0)))
+    assert (s.flow_x, s.flow_y, s.quality) == (0.0, 0.0, 0)
+
+
+def test_saturated_frame_gives_zero():
+    hist = model_histogram((3.0, 1.0))
+    s = summarize(_field(hist, stats=_stats(saturated=0.9)))
+    assert (s.flow_x, s.flow_y, s.quality) == (0.0, 0.0, 0)
+
+
+def test_history_filling_gives_zero():
+    s = summarize(_field(model_histogram((3.0, 1.0)), frame_index=2))
+    assert s.quality == 0 and s.flow_x == 0.0 and s.flow_y == 0.0
+
+
+def test_static_textured_scene_is_flow_zero_with_quality():
+    s = summarize(_field(np.zeros((2, 14, 64), np.int64), stats=_stats(changed=0.0)))
+    assert s.static and s.quality > 0
+    assert (s.flow_x, s.flow_y) == (0.0, 0.0)
+
+
+def test_uncalibrated_channels_fall_back_to_ioc():
+    params = EngineParams(delays=(1, 2, 4))
+    hist = np.zeros((2, 2 * len(params.channels), 64), np.int64)
+    c3 = params.channels.index((3, 1))
+    hist[0, 2 * c3, :] = 50  # horizontal edges of every orientation cross rows at +3 px/frame
+    s = summarize(_field(hist, stats=_stats(params), params=params, frame_index=20))
+    assert s.quality > 0
+    assert abs(s.flow_x - 3.0) < 0.05 and abs(s.flow_y) < 0.05
+
+
+@pytest.mark.parametrize("flow", [(5.0, -0.02), (-5.0, 0.03), (0.02, 4.0), (3.0, -3.02)])
+def test_directions_across_the_table_seams(flow):
+    """Directions next to 0°/180°/90° and the wrap-around of the direction tables."""
+    s = summarize(_field(model_histogram(flow, seed=4)))
+    speed = math.hypot(*flow)
+    assert math.hypot(s.flow_x - flow[0], s.flow_y - flow[1]) / speed < 0.04
+
+
+def test_summarize_is_cheap():
+    """The daemon calls summarize() per frame (budget 0.3 ms on the host; loose bound here)."""
+    fields = [_field(model_histogram(f, seed=i)) for i, f in enumerate([(3.0, 1.0), (-6.0, 2.5)])]
+    for f in fields:
+        summarize(f)
+    t0 = time.perf_counter()
+    for _ in range(50):
+        for f in fields:
+            summarize(f)
+    assert (time.perf_counter() - t0) / 100 < 3e-3
+
+
+@pytest.mark.parametrize("texture,speed,angle_deg,max_rel", [
+    ("gravel", 3.0, 17.0, 0.15), ("camera", 7.0, 152.0, 0.15), ("grass", 2.0, -110.0, 0.15),
+    ("brick", 5.0, 63.0, 0.25),  # brick: the hardest texture (few, aligned edges)
+])
+def test_real_flights_off_axis(texture, speed, angle_deg, max_rel):
+    """Detector on rendered flights over evaluation textures, off-axis (OpenCL backend; the
+    numpy backend gives the same histograms)."""
+    th = math.radians(angle_deg)
+    flow = (speed * math.cos(th), speed * math.sin(th))
+    flight = CameraFlight(texture, width=W, height=H, flow=flow, noise_sigma=2.0, seed=5)
+    est = emdflow.FlowEstimator(W, H, backend="opencl")
+    rel, ang = [], []
+    for t in range(9):
+        field = est.update(flight.render(t))
+        if not field.ready:
+            continue
+        s = summarize(field)
+        assert s.quality > 0
+        rel.append(math.hypot(s.flow_x - flow[0], s.flow_y - flow[1]) / speed)
+        d = math.degrees(math.atan2(s.flow_y, s.flow_x) - th)
+        ang.append(abs((d + 180) % 360 - 180))
+    assert np.median(rel) < max_rel
+    assert np.median(ang) < 5.0
+
+
+def test_real_static_scene():
+    est = emdflow.FlowEstimator(W, H, backend="opencl")
+    flight = CameraFlight("brick", width=W, height=H, flow=(0.0, 0.0), noise_sigma=2.0, seed=2)
+    for t in range(5):
+        s = summarize(est.update(flight.render(t)))
+    assert s.static and s.quality > 0 and (s.flow_x, s.flow_y) == (0.0, 0.0)
+
+
+def test_calibration_flights_stay_inside_the_photograph():
+    from emdflow.tools.calibrate_summary import inside_start
+
+    rng = np.random.default_rng(0)
+    for shift in (-120.0, 0.0, 95.0):
+        for _ in range(50):
+            x = inside_start(rng, 512, 320, shift)
+            path = (x, x + shift)
+            assert min(path) - 160 >= 0 and max(path) + 160 <= 512
+    with pytest.raises(ValueError):
+        inside_start(rng, 400, 320, 100.0)
+
+
+def test_calibration_refuses_evaluation_textures():
+    from emdflow.tools.calibrate_summary import main
+
+    with pytest.raises(SystemExit):
+        main(["collect", "--flights", "1", "--textures", "moon,gravel", "--out", "/dev/null"])
