@@ -12,6 +12,23 @@ __all__ = ["FlowEstimator", "BACKENDS"]
 
 BACKENDS = ("opencl", "numpy")
 
+#: A frame where at least this share of the finest receptors changed, and nearly all the
+#: same way (brightening share above 1 - POLARITY or below POLARITY), is a global
+#: brightness step (auto-exposure, lights), not motion.
+STEP_CHANGED = 0.2
+STEP_POLARITY = 0.1
+
+
+def _is_brightness_step(stats, params, pixels: int) -> bool:
+    from .reference import STAT_BRIGHTENING, STAT_FIRST_CHANGED
+
+    c = params.channels.index((params.scales[0], 1))
+    changed = int(stats[STAT_FIRST_CHANGED + c])
+    if changed < STEP_CHANGED * pixels:
+        return False
+    bright = int(stats[STAT_BRIGHTENING]) / changed
+    return bright > 1 - STEP_POLARITY or bright < STEP_POLARITY
+
 
 class FlowEstimator:
     """Insect-vision optical flow (Elementary Velocity Detector) over a stream of frames.
@@ -107,6 +124,7 @@ class FlowEstimator:
 
             self._engine = OpenCLEngine(self.width, self.height, self.params, device=device)
         self._frames = 0
+        self._last_step = None
 
     def _check(self, frame) -> np.ndarray:
         expected = f"a 2-D uint8 array of shape ({self.height}, {self.width})"
@@ -140,12 +158,18 @@ class FlowEstimator:
         frame = self._check(frame)
         u_code, v_code, stats, hist, positions = self._engine.step(frame)
         self._frames += 1
-        return FlowField(u_code, v_code, stats, hist, self.params, self._frames, positions=positions)
+        if _is_brightness_step(stats, self.params, self.width * self.height):
+            self._last_step = self._frames
+        # the step's states sit in the templates of this frame and the next two
+        in_templates = self._last_step is not None and self._frames - self._last_step < 3
+        return FlowField(u_code, v_code, stats, hist, self.params, self._frames, positions=positions,
+                         exposure_step=in_templates)
 
     def reset(self) -> None:
         """Forget the frame history (the next 3·max(delays) frames give no flow)."""
         self._engine.reset()
         self._frames = 0
+        self._last_step = None
 
     @property
     def frames_seen(self) -> int:

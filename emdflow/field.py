@@ -41,22 +41,27 @@ class FlowField:
         expansion and balance cues.
     frame_index : int
         Frames seen since the last reset, counting this one (1 for the first frame).
+    exposure_step : bool
+        A global brightness step (auto-exposure, lights) happened in this frame or one of
+        the two before — it is inside the velocity templates, so the detections are not
+        to be trusted (the summary reports quality 0).
     ready : bool
         True once the detector's history is full (before that, everything is NaN).
     """
 
     __slots__ = (
         "u_code", "v_code", "speeds", "stats", "histogram", "frame_index", "ready",
-        "params", "positions", "_u", "_v",
+        "params", "positions", "exposure_step", "_u", "_v",
     )
 
     def __init__(self, u_code, v_code, stats, histogram, params: EngineParams, frame_index: int,
-                 *, positions=None):
+                 *, positions=None, exposure_step: bool = False):
         self.u_code = u_code
         self.v_code = v_code
         self.stats = stats
         self.histogram = histogram
         self.positions = positions
+        self.exposure_step = bool(exposure_step)
         self.params = params
         self.speeds = params.speeds
         self.frame_index = int(frame_index)

@@ -48,7 +48,9 @@ Method
    and the likelihood fit, and the top of the speed range (above ~11 px/frame only the
    13 px scale fires and speed is poorly resolved). See :class:`SummaryOptions`.
 
-Blank, saturated or texture-less frames give flow 0 with quality 0. A *static* textured
+Blank, saturated or texture-less frames give flow 0 with quality 0, and so do the three
+frames whose templates contain a global brightness step (an auto-exposure jump; see
+:attr:`FlowField.exposure_step`). A *static* textured
 scene — texture present, almost no receptor changes at scale 1, so the image moves less
 than the detector's floor of about 0.5 px/frame — is a valid measurement: flow 0 with a
 quality set by the texture.
@@ -526,8 +528,8 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
     opts = options or _DEFAULT_OPTIONS
     if not isinstance(field, FlowField):
         raise TypeError(f"summarize() takes a FlowField, not {type(field).__name__}")
-    if not field.ready:
-        return _BLIND
+    if not field.ready or field.exposure_step:
+        return _BLIND  # no history yet, or a global brightness step is in the templates
     textured = field.textured_fraction
     if textured < opts.min_textured or field.saturated_fraction > opts.max_saturated:
         return _BLIND

@@ -126,3 +126,20 @@ def test_temporal_delays_see_slow_motion():
     u = np.concatenate([f.u[np.isfinite(f.u)] for f in fields])
     assert np.mean(u > 0) > 0.9
     assert set(np.unique(np.abs(u))) <= {0.25, 0.5, 1.0} and np.median(u) <= 0.5
+
+
+@pytest.mark.parametrize("step", [+30, -40])
+def test_a_global_brightness_step_is_discounted_not_taken_for_motion(step):
+    est = emdflow.FlowEstimator(W, H)
+    flight = CameraFlight("gravel", width=W, height=H, flow=(3.0, 1.0), noise_sigma=2.0)
+    qualities = []
+    for t in range(14):
+        frame = flight.render(t).astype(int) + (step if t >= 8 else 0)
+        field = est.update(np.clip(frame, 0, 255).astype(np.uint8))
+        s = emdflow.summarize(field)
+        qualities.append(s.quality)
+        if t in (8, 9, 10):
+            assert field.exposure_step and s.quality == 0 and (s.flow_x, s.flow_y) == (0.0, 0.0)
+        elif t >= 3:
+            assert not field.exposure_step and s.quality > 0
+            assert math.hypot(s.flow_x - 3.0, s.flow_y - 1.0) < 0.6
