@@ -114,7 +114,7 @@ def test_rate_limited_by_baud():
 
 
 def test_forward_flight_worked_example(peer):
-    # docs/telemetry.md: f = 400 px, 100 fps, ground moving down the image at 2 px/frame
+    # README (INAV worked example): f = 400 px, 100 fps, ground moving down the image at 2 px/frame
     # (forward at 0.5 m/s, 1 m above ground). 50 Hz → 4 px per message = 0.01 rad = 0.573°
     # → motionY = -10.5 × 0.573 = -6.016 counts (remainder carried).
     _, messages = run_inav(peer, flow_x=0.0, flow_y=2.0)

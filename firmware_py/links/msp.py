@@ -7,7 +7,7 @@ motionX i32 LE, motionY i32 LE — counts accumulated since the previous message
 
 Sign and scale (derived from INAV ``src/main/io/opflow_msp.c``, ``src/main/sensors/opflow.c``,
 ``src/main/sensors/boardalignment.c``, ``src/main/navigation/navigation_pos_estimator_flow.c``;
-worked example in ``docs/telemetry.md``)::
+worked example in the README, INAV section)::
 
     motionX = -opflow_scale × degrees(integrated_x)
     motionY = -opflow_scale × degrees(integrated_y)

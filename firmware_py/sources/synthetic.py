@@ -29,7 +29,7 @@ from .base import Frame, FrameSource, Pacer, SourceError, host_us
 
 __all__ = ["SyntheticSource", "SYNTHETIC_DEFAULTS"]
 
-#: Defaults of the URI options (documented in the module docstring and docs/daemon.md).
+#: Defaults of the URI options (documented in the module docstring and the README).
 SYNTHETIC_DEFAULTS = {
     "texture": "gravel",
     "u": None,
