@@ -33,16 +33,22 @@ class ToolError(Exception):
         self.code = code
 
 
-def _int_list(text: str) -> tuple[int, ...]:
+def number_list(text: str, kind=int) -> tuple:
+    """argparse type: comma-separated numbers of ``kind`` (int or float), at least one."""
     import argparse
 
+    noun = "integers" if kind is int else "numbers"
     try:
-        values = tuple(int(x) for x in text.split(",") if x.strip())
+        values = tuple(kind(x) for x in text.split(",") if x.strip())
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated integers") from None
+        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated {noun}") from None
     if not values:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected at least one integer")
+        raise argparse.ArgumentTypeError(f"{text!r}: expected at least one of the {noun}")
     return values
+
+
+def _int_list(text: str) -> tuple[int, ...]:
+    return number_list(text, int)
 
 
 def add_engine_arguments(parser) -> None:

@@ -649,13 +649,9 @@ def plot_results(rows: list[dict], path, *, title: str | None = None, engine_lab
 
 
 def _floats(text: str) -> tuple[float, ...]:
-    try:
-        values = tuple(float(x) for x in text.split(",") if x.strip())
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated numbers") from None
-    if not values:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected at least one number")
-    return values
+    from . import number_list
+
+    return number_list(text, float)
 
 
 def _directions(text: str) -> tuple[float, ...]:
