@@ -3,7 +3,7 @@
 Design (see ``kernels/*.cl``): all state lives on the device between frames — the
 summed-area tables of the last ``max(delays) + 1`` prefiltered frames and, per channel, a
 ring of ``2D + 1`` bit-packed ternary state planes. Per frame: one upload of the uint8
-frame, six kernel launches on an in-order queue, one blocking download of one result
+frame, five kernel launches on an in-order queue, one blocking download of one result
 buffer (flow codes + statistics + detection histogram). Sizes and tables are compile-time
 constants; a program is built once per process and shape (PoCL also caches the binary on
 disk, ``POCL_CACHE_DIR``).
@@ -170,12 +170,30 @@ def _program(ctx, device, layout: _Layout, debug: bool):
     with _LOCK:
         prog = _PROGRAMS.get(key)
         if prog is None:
-            try:
-                prog = cl.Program(ctx, source).build(options=["-cl-std=CL1.2"])
-            except cl.Error as exc:
-                raise RuntimeError(f"building the emdflow OpenCL kernels failed on {device.name}: {exc}") from exc
+            prog = _build(cl, ctx, device, source)
             _PROGRAMS[key] = prog
     return prog
+
+
+_KERNELS = ("prefilter_columns", "integral_rows", "ternary_states", "velocity_detectors", "summary_evidence")
+
+
+def _build(cl, ctx, device, source: str):
+    try:
+        prog = cl.Program(ctx, source).build(options=["-cl-std=CL1.2"])
+        if set(_KERNELS) <= set(prog.kernel_names.split(";")):
+            return prog
+        # A PoCL process killed while compiling can leave a cache entry without kernels
+        # (seen with PoCL 3.0): build again under another cache key instead of failing.
+        prog = cl.Program(ctx, source).build(options=["-cl-std=CL1.2", "-D", "EMD_REBUILD=1"])
+        if set(_KERNELS) <= set(prog.kernel_names.split(";")):
+            return prog
+        raise RuntimeError(
+            f"the emdflow OpenCL program on {device.name} lacks kernels ({prog.kernel_names!r}); "
+            "clear the kernel cache (POCL_CACHE_DIR, default ~/.cache/pocl) and retry"
+        )
+    except cl.Error as exc:
+        raise RuntimeError(f"building the emdflow OpenCL kernels failed on {device.name}: {exc}") from exc
 
 
 _CONTEXTS: dict = {}
