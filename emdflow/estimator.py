@@ -6,7 +6,7 @@ import numpy as np
 
 from .field import FlowField
 from .params import EngineParams
-from .reference import ReferenceEngine
+from .reference import STAT_BRIGHTENING, STAT_FIRST_CHANGED, ReferenceEngine
 
 __all__ = ["FlowEstimator", "BACKENDS"]
 
@@ -20,8 +20,6 @@ STEP_POLARITY = 0.1
 
 
 def _is_brightness_step(stats, params, pixels: int) -> bool:
-    from .reference import STAT_BRIGHTENING, STAT_FIRST_CHANGED
-
     c = params.channels.index((params.scales[0], 1))
     changed = int(stats[STAT_FIRST_CHANGED + c])
     if changed < STEP_CHANGED * pixels:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from .params import EngineParams
@@ -15,6 +17,17 @@ from .reference import (
 )
 
 __all__ = ["FlowField"]
+
+
+@functools.lru_cache(maxsize=8)
+def _code_table(speeds: tuple) -> np.ndarray:
+    """float32 speed of every int8 code (indexed as uint8), NaN for 0 = undetected."""
+    lut = np.full(256, np.nan, np.float32)
+    for c, s in enumerate(speeds):
+        lut[c + 1] = s
+        lut[(-(c + 1)) & 0xFF] = -s
+    lut.setflags(write=False)
+    return lut
 
 
 class FlowField:
@@ -74,13 +87,7 @@ class FlowField:
         return self.u_code.shape
 
     def _lookup(self) -> np.ndarray:
-        n = len(self.speeds)
-        lut = np.full(256, np.nan, np.float32)  # indexed by the code as uint8
-        for c, s in enumerate(self.speeds):
-            lut[c + 1] = s
-            lut[(-(c + 1)) & 0xFF] = -s
-        assert n < 128
-        return lut
+        return _code_table(self.speeds)
 
     @property
     def u(self) -> np.ndarray:

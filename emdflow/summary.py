@@ -102,10 +102,14 @@ import numpy as np
 from .field import FlowField
 from .params import EngineParams
 
-__all__ = ["FlowSummary", "summarize", "SummaryOptions"]
+__all__ = ["FlowSummary", "summarize", "SummaryOptions", "calibration_for"]
 
-#: Calibration table written by ``python -m emdflow.tools.calibrate_summary fit``.
+#: Calibration table of the paper's model, written by
+#: ``python -m emdflow.tools.calibrate_summary fit --write``.
 CALIBRATION_FILE = Path(__file__).with_name("summary_calibration.npz")
+#: Tables of other channel sets sit next to it as ``summary_calibration_<model>.npz``
+#: (``fit --model <model> --write``); each names its channels and threshold mode.
+CALIBRATION_GLOB = "summary_calibration*.npz"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -327,6 +331,9 @@ class _LikelihoodModel:
         beta_nodes = np.asarray(table["beta_nodes"], np.float64)
         u_nodes = np.asarray(table["u_nodes"], np.float64)
         self.u_offset = float(table["u_offset"])
+        # speeds below half the slowest channel's are not resolved (0.5 px/frame for the
+        # paper's channels): the floor of the search's start and of the disagreement
+        self.speed_floor = 0.5 * float(min(params.speeds))
         self.u0 = float(u_nodes[0])
         self.du = float(u_nodes[1] - u_nodes[0])
         self.n_u = n_u = len(u_nodes)
@@ -390,11 +397,51 @@ _MODEL_CACHE: dict = {}
 _CALIBRATION: dict = {}
 
 
-def _load_calibration():
-    if "table" not in _CALIBRATION:
-        with np.load(CALIBRATION_FILE) as z:
-            _CALIBRATION["table"] = {k: z[k] for k in z.files}
-    return _CALIBRATION["table"]
+def _load_calibrations() -> list:
+    """All calibration tables next to this module (the paper's first), each as a dict of
+    arrays plus ``"_path"``."""
+    if "tables" not in _CALIBRATION:
+        paths = [CALIBRATION_FILE] + sorted(
+            p for p in CALIBRATION_FILE.parent.glob(CALIBRATION_GLOB) if p != CALIBRATION_FILE)
+        tables = []
+        for path in paths:
+            if not path.is_file():
+                continue
+            with np.load(path) as z:
+                table = {k: z[k] for k in z.files}
+            table["_path"] = path
+            tables.append(table)
+        _CALIBRATION["tables"] = tables
+    return _CALIBRATION["tables"]
+
+
+def _table_matches(table: dict, params: EngineParams):
+    """None when ``table`` is not for these channels, else its rank (0 = also made with
+    this threshold mode, 1 = another or unrecorded mode)."""
+    if "channels" in table:
+        channels = tuple((int(k), int(d)) for k, d in np.asarray(table["channels"]))
+        if channels != tuple(params.channels):
+            return None
+    elif tuple(params.speeds) != tuple(float(s) for s in table["speeds"]):
+        return None  # the paper's table names its channel speeds only
+    if np.asarray(table["prob"]).shape[-1] != 2 * len(params.channels):
+        return None
+    mode = str(table["threshold_mode"]) if "threshold_mode" in table else None
+    return 0 if mode == params.threshold_mode else 1
+
+
+def calibration_for(params: EngineParams):
+    """Path of the calibration table :func:`summarize` uses for ``params``, or None when
+    none matches its channel set (the summary is then the IoC fit alone).
+
+    A table must be for exactly ``params.channels``; among those, one made with the same
+    ``threshold_mode`` is preferred."""
+    best = None
+    for table in _load_calibrations():
+        rank = _table_matches(table, params)
+        if rank is not None and (best is None or rank < best[0]):
+            best = (rank, table)
+    return None if best is None else best[1]["_path"]
 
 
 def _model_for(params: EngineParams, opts: SummaryOptions):
@@ -402,9 +449,10 @@ def _model_for(params: EngineParams, opts: SummaryOptions):
     key = (params, opts.max_axis_angle, opts.outlier_probability)
     if key in _MODEL_CACHE:
         return _MODEL_CACHE[key]
-    table = _load_calibration()
+    path = calibration_for(params)
     model = None
-    if tuple(params.speeds) == tuple(float(s) for s in table["speeds"]):
+    if path is not None:
+        table = next(t for t in _load_calibrations() if t["_path"] == path)
         model = _LikelihoodModel(table, opts.max_axis_angle, opts.outlier_probability, params)
     _MODEL_CACHE[key] = model
     return model
@@ -466,7 +514,7 @@ def _vertex(l0: float, l1: float, l2: float) -> float:
 
 def _likelihood_fit(model: _LikelihoodModel, curves: np.ndarray, U0: float, V0: float):
     """Coarse-to-fine polar search; returns (U, V, σ of log-speed, σ of direction)."""
-    log_s = math.log(max(math.hypot(U0, V0), 0.5))
+    log_s = math.log(max(math.hypot(U0, V0), model.speed_floor))
     d = int(round(math.atan2(V0, U0) / _DIR_STEP)) % _DIRECTIONS
     sig_s = sig_a = math.inf
     last = len(model.levels) - 1
@@ -563,7 +611,7 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
     if active >= 2 and count >= opts.min_detections:
         U1, V1, sig_s, sig_a = _likelihood_fit(model, curves, U, V)
         speed = math.hypot(U1, V1)
-        disagreement = math.hypot(U1 - U, V1 - V) / max(speed, 0.5)
+        disagreement = math.hypot(U1 - U, V1 - V) / max(speed, model.speed_floor)
         expected = math.hypot(opts.overdispersion * math.hypot(sig_s, sig_a), 0.5 * disagreement)
         U, V = U1, V1
     else:

@@ -66,51 +66,99 @@ def inside_start(rng, size, view, shift):
     return float(rng.uniform(lo, hi))
 
 
+#: Detector models the summary is calibrated for: keyword options of ``FlowEstimator``
+#: (``extended`` is the daemon's ``[engine] model = "extended"``).
+MODELS = {
+    "paper": {},
+    "extended": {"delays": (1, 2, 4), "delay_scales": (1,), "threshold_mode": "adaptive"},
+}
+#: Per model, what ``collect`` draws for a flight: speed range (log-uniform, px/frame),
+#: contrast range (log-uniform), the share of flights with an exposure drift and its
+#: largest size (uniform in ±drift across the whole flight), and the u grid offset of the
+#: table (finer near 0 for the slow channels).
+COLLECT_RANGES = {
+    "paper": {"speed": (0.4, 18.0), "contrast": (0.6, 1.0), "drift_share": 0.0, "drift": 0.0},
+    "extended": {"speed": (0.15, 18.0), "contrast": (0.2, 1.0), "drift_share": 0.6, "drift": 0.3},
+}
+
+
+def model_params(model: str):
+    from emdflow.params import EngineParams
+
+    return EngineParams(**MODELS[model])
+
+
+def calibration_path(model: str) -> Path:
+    """Where ``fit --write`` stores the table of ``model`` (summary.py finds it there)."""
+    name = "summary_calibration.npz" if model == "paper" else f"summary_calibration_{model}.npz"
+    return Path(__file__).resolve().parents[1] / name
+
+
 def collect(flights: int, out: str, frames: int = 7, seed: int = 20240601, width=320, height=240,
-            textures=CALIBRATION_TEXTURES, backend: str = "opencl", scale_range=(1.0, 1.0)):
+            textures=CALIBRATION_TEXTURES, backend: str = "opencl", scale_range=(1.0, 1.0),
+            model: str = "paper"):
     """Render ``flights`` random flights; store every ready frame's histogram and truth.
 
-    Each flight draws a direction, a speed (log-uniform 0.4..18 px/frame), noise σ, a
-    contrast, a ground scale (log-uniform in ``scale_range``: texture px per image px, so
-    the photographs are seen finer or coarser) and a start that keeps the whole flight
-    inside the photograph (no mirrored borders)."""
+    Each flight draws a direction, a speed (log-uniform over the model's range, 0.4..18
+    px/frame for the paper's model), noise σ, a contrast, a ground scale (log-uniform in
+    ``scale_range``: texture px per image px, so the photographs are seen finer or
+    coarser) and a start that keeps the whole flight inside the photograph (no mirrored
+    borders). For the extended model the contrast is log-uniform 0.2..1 and 60 % of the
+    flights carry an exposure drift (uniform in ±30 % across the flight). ``frames``
+    counts the *ready* frames per flight (the model's history comes on top: 3 frames for
+    the paper's model, whose flights therefore have ``frames`` frames in all as before,
+    12 for the extended one)."""
     from emdflow import FlowEstimator
     from emdflow.synthetic import CameraFlight, load_texture
 
     rng = np.random.default_rng(seed)
-    est = FlowEstimator(width, height, backend=backend)
+    est = FlowEstimator(width, height, backend=backend, **MODELS[model])
+    ranges = COLLECT_RANGES[model]
+    # the paper's flights are ``frames`` long in all (as the committed table was made)
+    total = frames if model == "paper" else frames + est.params.history_frames
     hists, flows, stats, names = [], [], [], []
     t0 = time.time()
     for i in range(flights):
         texture = textures[i % len(textures)]
         th, tw = load_texture(texture).shape
         angle = rng.uniform(0, 2 * math.pi)
-        speed = math.exp(rng.uniform(math.log(0.4), math.log(18.0)))
+        lo, hi = ranges["speed"]
+        speed = math.exp(rng.uniform(math.log(lo), math.log(hi)))
         flow = (speed * math.cos(angle), speed * math.sin(angle))
         scale = math.exp(rng.uniform(math.log(scale_range[0]), math.log(scale_range[1])))
         # the largest scale at which the flight fits in the photograph
-        fit = min((tw - 6.0) / (width + abs(flow[0]) * (frames - 1)),
-                  (th - 6.0) / (height + abs(flow[1]) * (frames - 1)))
+        fit = min((tw - 6.0) / (width + abs(flow[0]) * (total - 1)),
+                  (th - 6.0) / (height + abs(flow[1]) * (total - 1)))
         scale = min(scale, fit)
-        start = (inside_start(rng, tw, width * scale, -flow[0] * scale * (frames - 1)),
-                 inside_start(rng, th, height * scale, -flow[1] * scale * (frames - 1)))
+        start = (inside_start(rng, tw, width * scale, -flow[0] * scale * (total - 1)),
+                 inside_start(rng, th, height * scale, -flow[1] * scale * (total - 1)))
+        noise = float(rng.uniform(1.0, 3.0))
+        if model == "paper":  # the committed table's random stream, unchanged
+            contrast = float(rng.uniform(*ranges["contrast"]))
+            drift = 0.0
+        else:
+            clo, chi = ranges["contrast"]
+            contrast = math.exp(rng.uniform(math.log(clo), math.log(chi)))
+            drift = (float(rng.uniform(-ranges["drift"], ranges["drift"]))
+                     if rng.uniform() < ranges["drift_share"] else 0.0)
         flight = CameraFlight(
-            texture, width=width, height=height, flow=flow,
-            noise_sigma=float(rng.uniform(1.0, 3.0)), contrast=float(rng.uniform(0.6, 1.0)),
+            texture, width=width, height=height, flow=flow, noise_sigma=noise,
+            contrast=contrast, exposure_drift=drift, drift_frames=total,
             seed=int(rng.integers(1 << 30)), start=start, ground_scale=scale,
         )
         est.reset()
-        for t in range(frames):
+        for t in range(total):
             field = est.update(flight.render(t))
             if field.ready:
                 hists.append(field.histogram.astype(np.int32))
                 flows.append(flow)
                 names.append(texture)
                 stats.append(field.stats.copy())
-        if (i + 1) % 500 == 0:
-            print(f"{i + 1}/{flights} flights, {time.time() - t0:.0f} s", file=sys.stderr)
+        if (i + 1) % 250 == 0:
+            print(f"{i + 1}/{flights} flights, {time.time() - t0:.0f} s", file=sys.stderr,
+                  flush=True)
     np.savez_compressed(out, hist=np.array(hists), flow=np.array(flows), stats=np.array(stats),
-                        texture=np.array(names))
+                        texture=np.array(names), model=np.array(model))
     print(f"wrote {len(hists)} frames to {out}", file=sys.stderr)
 
 
@@ -119,10 +167,12 @@ PSI_NODES_DEG = (0.0, 15.0, 30.0, 45.0, 60.0, 70.0, 80.0, 90.0)
 #: ... β = |sin| of the angle between the flow and the edge normal (0: the edge moves along
 #: its normal, 1: it slides along itself) ...
 BETA_NODES = (0.0, 0.3, 0.6, 0.8, 1.0)
-#: ... and |c| on ``u = log(|c| + U_OFFSET)``, ``U_COUNT`` nodes from |c| = 0 to ``C_MAX``.
+#: ... and |c| on ``u = log(|c| + U_OFFSET)``, ``U_COUNT`` nodes from |c| = 0 to ``C_MAX``
+#: (per model: the extended model's slow channels need nodes closer to 0).
 U_OFFSET = 0.5
 U_COUNT = 40
 C_MAX = 60.0
+U_GRID = {"paper": (U_OFFSET, U_COUNT), "extended": (0.2, 48)}
 #: A cell needs this much detection weight to stand on its own (else: nearest filled cell).
 MIN_CELL_WEIGHT = 100.0
 
@@ -148,11 +198,11 @@ def crossing_geometry():
     return normals, n_axis, psi
 
 
-def u_nodes():
-    return np.linspace(math.log(U_OFFSET), math.log(C_MAX + U_OFFSET), U_COUNT)
+def u_nodes(u_offset=U_OFFSET, u_count=U_COUNT):
+    return np.linspace(math.log(u_offset), math.log(C_MAX + u_offset), u_count)
 
 
-def accumulate(hist, flow):
+def accumulate(hist, flow, u_offset=U_OFFSET, u_count=U_COUNT):
     """Detection weight ``N[ψ, β, u, category]`` from histograms with known flow.
 
     ``category = 2·scale_index + (0 if the code's sign agrees with sign(c) else 1)``;
@@ -166,8 +216,8 @@ def accumulate(hist, flow):
     speed = np.maximum(np.hypot(flow[:, 0], flow[:, 1]), 1e-9)[:, None, None]
     c = vn / n_axis
     beta = np.sqrt(np.clip(1.0 - (vn / speed) ** 2, 0.0, 1.0))
-    shape = (len(PSI_NODES_DEG), len(BETA_NODES), U_COUNT, n_codes)
-    ui, uf = _interp_weights(np.log(np.abs(c) + U_OFFSET), u_nodes())
+    shape = (len(PSI_NODES_DEG), len(BETA_NODES), u_count, n_codes)
+    ui, uf = _interp_weights(np.log(np.abs(c) + u_offset), u_nodes(u_offset, u_count))
     bi, bf = _interp_weights(beta, BETA_NODES)
     pi, pf = _interp_weights(psi, PSI_NODES_DEG)
     pi = np.broadcast_to(pi, c.shape)
@@ -212,65 +262,88 @@ def table_from_counts(N):
     return P, tot
 
 
-def fit_main(data, write):
+def fit_main(data, write, model="paper"):
     hists, flows = [], []
+    params = model_params(model)
     for path in data:
         d = np.load(path)
+        recorded = str(d["model"]) if "model" in d.files else "paper"
+        if recorded != model:
+            raise SystemExit(f"{path}: flights of the {recorded!r} model, not {model!r}")
+        if d["hist"].shape[2] != 2 * len(params.channels):
+            raise SystemExit(f"{path}: histograms do not match the {model!r} channels")
         hists.append(d["hist"])
         flows.append(d["flow"])
-    N = accumulate(np.concatenate(hists), np.concatenate(flows))
+    u_offset, u_count = U_GRID[model]
+    N = accumulate(np.concatenate(hists), np.concatenate(flows), u_offset, u_count)
     P, tot = table_from_counts(N)
-    out = Path(__file__).resolve().parents[1] / "summary_calibration.npz"
+    out = calibration_path(model)
     filled = (tot >= MIN_CELL_WEIGHT).mean(axis=(1, 2))
     print("filled share per ψ node:", " ".join(f"{x:.2f}" for x in filled))
     if write:
+        extra = {}
+        if model != "paper":  # the paper's table keeps its original layout, byte for byte
+            extra = dict(channels=np.array(params.channels, np.int64),
+                         threshold_mode=np.array(params.threshold_mode), model=np.array(model))
         np.savez_compressed(
             out, prob=P.astype(np.float32), psi_nodes_deg=np.asarray(PSI_NODES_DEG),
-            beta_nodes=np.asarray(BETA_NODES), u_nodes=u_nodes(),
-            u_offset=np.float64(U_OFFSET), weight=tot.astype(np.float32),
-            speeds=np.array([1, 3, 5, 7, 9, 11, 13], np.float64),
+            beta_nodes=np.asarray(BETA_NODES), u_nodes=u_nodes(u_offset, u_count),
+            u_offset=np.float64(u_offset), weight=tot.astype(np.float32),
+            speeds=np.array(params.speeds, np.float64), **extra,
         )
         print(f"wrote {out}")
 
 EVALUATION_TEXTURES = ("gravel", "brick", "grass", "camera")
 EVALUATION_SPEEDS = (1, 2, 3, 4, 5, 7, 9, 11, 13)
+#: Per model: the speeds of the evaluation flights (the extended model's slow channels
+#: are for 0.25–0.5 px/frame).
+MODEL_EVALUATION_SPEEDS = {"paper": EVALUATION_SPEEDS,
+                           "extended": (0.25, 0.5, 1, 2, 3, 5, 7, 9, 11, 13)}
 #: Seed of the random-direction evaluation set (``evaluate --random``).
 RANDOM_DIRECTIONS_SEED = 4242
 
 
-def _directions(offset, random_set):
+def _directions(offset, random_set, speeds=EVALUATION_SPEEDS):
     """The 8 flight directions (radians) of one (speed, texture) cell, as a function of
     the cell's index (the random set draws fresh directions per cell)."""
     if not random_set:
         return lambda cell: [a * math.pi / 4 + offset for a in range(8)]
     rng = np.random.default_rng(RANDOM_DIRECTIONS_SEED)
-    table = rng.uniform(0.0, 2.0 * math.pi, (len(EVALUATION_SPEEDS) * len(EVALUATION_TEXTURES), 8))
+    table = rng.uniform(0.0, 2.0 * math.pi, (len(speeds) * len(EVALUATION_TEXTURES), 8))
     return lambda cell: list(table[cell])
 
 
 def render_evaluation(offset: float = 0.0, random_set: bool = False, frames: int = 6,
-                      backend: str = "opencl", width=320, height=240):
-    """Flights over the evaluation textures: 9 speeds × 4 textures × 8 directions
-    (multiples of 45° plus ``offset`` radians, or random directions), noise σ = 2,
-    ``frames`` ready frames each. Returns the histograms, statistics and true flows."""
+                      backend: str = "opencl", width=320, height=240, model: str = "paper",
+                      contrast: float = 1.0, drift: float = 0.0):
+    """Flights over the evaluation textures: the model's speeds (9 for the paper's model,
+    10 from 0.25 px/frame for the extended one) × 4 textures × 8 directions (multiples of
+    45° plus ``offset`` radians, or random directions), noise σ = 2, scene ``contrast``
+    and an exposure ramp of ``drift`` (relative) across each whole flight, ``frames``
+    ready frames each. Returns the histograms, statistics and true flows."""
     from emdflow import FlowEstimator
     from emdflow.synthetic import CameraFlight, load_texture
 
-    est = FlowEstimator(width, height, backend=backend)
+    est = FlowEstimator(width, height, backend=backend, **MODELS[model])
     warm = est.params.history_frames
-    directions = _directions(offset, random_set)
+    speeds = MODEL_EVALUATION_SPEEDS[model]
+    directions = _directions(offset, random_set, speeds)
     hists, stats, flows = [], [], []
     cell = 0
-    for sp in EVALUATION_SPEEDS:
+    for sp in speeds:
         for texture in EVALUATION_TEXTURES:
             for a, th in enumerate(directions(cell)):
                 fu, fv = sp * math.cos(th), sp * math.sin(th)
-                # the view's path is centred on the photograph (never past its border)
+                # the path of the frames the one-frame templates see (from frame warm − 3;
+                # all of them for the paper's model) is centred on the photograph, so it
+                # never runs past its border (the slow channels' older frames may, at
+                # speeds they cannot see anyway)
                 size = load_texture(texture).shape
-                start = (size[1] / 2 + fu * (frames + warm - 1) / 2,
-                         size[0] / 2 + fv * (frames + warm - 1) / 2)
+                mid = (warm - 3 + frames + warm - 1) / 2
+                start = (size[1] / 2 + fu * mid, size[0] / 2 + fv * mid)
                 flight = CameraFlight(texture, width=width, height=height, flow=(fu, fv),
-                                      noise_sigma=2.0, seed=a, start=start)
+                                      noise_sigma=2.0, seed=a, start=start, contrast=contrast,
+                                      exposure_drift=drift, drift_frames=frames + warm)
                 est.reset()
                 for t in range(frames + warm):
                     field = est.update(flight.render(t))
@@ -280,7 +353,7 @@ def render_evaluation(offset: float = 0.0, random_set: bool = False, frames: int
                         flows.append((fu, fv))
             cell += 1
     return dict(hist=np.array(hists), stats=np.array(stats), flow=np.array(flows),
-                shape=np.array([height, width]), frame_index=warm + 1)
+                shape=np.array([height, width]), frame_index=warm + 1, model=np.array(model))
 
 
 def score(data, options=None, out=print):
@@ -294,7 +367,7 @@ def score(data, options=None, out=print):
 
     h, w = (int(x) for x in data["shape"])
     codes = np.zeros((h, w), np.int8)
-    params = EngineParams()
+    params = EngineParams(**MODELS[str(data["model"]) if "model" in data else "paper"])
     flows = np.asarray(data["flow"], np.float64)
     fields = [FlowField(codes, codes, st, hi, params, int(data["frame_index"]))
               for hi, st in zip(data["hist"], data["stats"])]
@@ -314,7 +387,7 @@ def score(data, options=None, out=print):
     out("  speed | frames | median rel error | median direction error | coverage")
     for sp in np.unique(np.round(speed, 6)):
         m = np.isclose(speed, sp)
-        out(f"  {sp:5.0f} | {int(m.sum()):6d} | {np.median(err[m, 0]) * 100:5.1f} % "
+        out(f"  {sp:5.4g} | {int(m.sum()):6d} | {np.median(err[m, 0]) * 100:5.1f} % "
             f"| {np.median(err[m, 1]):5.2f} deg | {np.mean(qual[m] > 0) * 100:5.1f} %")
     out(f"    all | {len(err):6d} | {np.median(err[:, 0]) * 100:5.1f} % "
         f"| {np.median(err[:, 1]):5.2f} deg | {np.mean(qual > 0) * 100:5.1f} %"
@@ -329,19 +402,26 @@ def score(data, options=None, out=print):
 
 
 def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: str = "opencl",
-             save: str | None = None, data: str | None = None):
+             save: str | None = None, data: str | None = None, model: str = "paper",
+             contrast: float = 1.0, drift: float = 0.0, options=None):
     """Render (or load with ``data``) the evaluation flights and :func:`score` them."""
     if data:
         with np.load(data) as z:
             flights = {k: z[k] for k in z.files}
         label = data
     else:
-        flights = render_evaluation(offset, random_set, frames, backend)
+        flights = render_evaluation(offset, random_set, frames, backend, model=model,
+                                    contrast=contrast, drift=drift)
         label = "random directions" if random_set else f"offset {offset} rad"
+        label += f", {model} model"
+        if contrast != 1.0:
+            label += f", contrast x{contrast:g}"
+        if drift:
+            label += f", exposure drift {drift:+g}"
         if save:
             np.savez_compressed(save, **flights)
     print(f"{label}: {len(flights['flow'])} frames")
-    return score(flights)
+    return score(flights, options)
 
 
 def main(argv=None):
@@ -357,10 +437,14 @@ def main(argv=None):
     c.add_argument("--backend", default="opencl", choices=("opencl", "numpy"))
     c.add_argument("--scale-range", default="1,1",
                    help="ground scale range lo,hi (texture px per image px, log-uniform)")
+    c.add_argument("--model", default="paper", choices=tuple(MODELS),
+                   help="detector model (channel set and threshold mode) to calibrate")
     f = sub.add_parser("fit")
     f.add_argument("data", nargs="+")
     f.add_argument("--write", action="store_true",
-                   help="write emdflow/summary_calibration.npz")
+                   help="write emdflow/summary_calibration.npz (paper) or "
+                        "emdflow/summary_calibration_<model>.npz")
+    f.add_argument("--model", default="paper", choices=tuple(MODELS))
     e = sub.add_parser("evaluate")
     e.add_argument("--offset", type=float, default=0.3, help="direction offset, radians")
     e.add_argument("--random", action="store_true",
@@ -369,6 +453,12 @@ def main(argv=None):
     e.add_argument("--backend", default="opencl", choices=("opencl", "numpy"))
     e.add_argument("--save", help="also store the rendered histograms here (.npz)")
     e.add_argument("--data", help="score histograms stored by --save instead of rendering")
+    e.add_argument("--model", default="paper", choices=tuple(MODELS))
+    e.add_argument("--contrast", type=float, default=1.0, help="scene contrast factor")
+    e.add_argument("--drift", type=float, default=0.0,
+                   help="exposure drift across each flight (e.g. 0.2 for +20 %%)")
+    e.add_argument("--ioc", action="store_true",
+                   help="score the IoC fit alone (SummaryOptions(likelihood=False))")
     a = ap.parse_args(argv)
     if a.cmd == "collect":
         bad = set(a.textures.split(",")) & set(EVALUATION_TEXTURES)
@@ -376,11 +466,17 @@ def main(argv=None):
             ap.error(f"--textures: {', '.join(sorted(bad))} belong to the evaluation set")
         collect(a.flights, a.out, a.frames, a.seed, textures=tuple(a.textures.split(",")),
                 backend=a.backend,
-                scale_range=tuple(float(x) for x in a.scale_range.split(",")))
+                scale_range=tuple(float(x) for x in a.scale_range.split(",")), model=a.model)
     elif a.cmd == "fit":
-        fit_main(a.data, a.write)
+        fit_main(a.data, a.write, a.model)
     else:
-        evaluate(a.offset, a.random, a.frames, a.backend, a.save, a.data)
+        options = None
+        if a.ioc:
+            from emdflow.summary import SummaryOptions
+
+            options = SummaryOptions(likelihood=False)
+        evaluate(a.offset, a.random, a.frames, a.backend, a.save, a.data, a.model, a.contrast,
+                 a.drift, options)
 
 
 if __name__ == "__main__":
