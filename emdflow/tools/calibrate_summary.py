@@ -26,6 +26,30 @@ Steps (all deterministic; the committed table is exactly what these commands wri
     python -m emdflow.tools.calibrate_summary evaluate --offset 0.3
     python -m emdflow.tools.calibrate_summary evaluate --random
 
+The extended model (``[engine] model = "extended"``: delays 1, 2, 4 at scale 1, adaptive
+threshold) has its own table, ``emdflow/summary_calibration_extended.npz`` (~5, 5 and 3.5
+minutes of collection)::
+
+    python -m emdflow.tools.calibrate_summary collect --model extended --flights 2800 \
+        --frames 8 --seed 20240606 --out /tmp/emdflow_calib_ext.npz
+    python -m emdflow.tools.calibrate_summary collect --model extended --flights 2800 \
+        --frames 8 --seed 7 --out /tmp/emdflow_calib_ext2.npz
+    python -m emdflow.tools.calibrate_summary collect --model extended --flights 2000 \
+        --frames 8 --seed 11 --contrast-range 0.7,1 --scale-range 1,2 \
+        --out /tmp/emdflow_calib_ext3.npz
+    python -m emdflow.tools.calibrate_summary fit --model extended /tmp/emdflow_calib_ext.npz \
+        /tmp/emdflow_calib_ext2.npz /tmp/emdflow_calib_ext3.npz --write
+    # 10 speeds 0.25..13 px/frame x 4 textures x 8 directions x 6 frames = 1920 frames
+    python -m emdflow.tools.calibrate_summary evaluate --model extended --random
+    python -m emdflow.tools.calibrate_summary evaluate --model extended --offset 0.3
+    python -m emdflow.tools.calibrate_summary evaluate --model extended --random --contrast 0.25
+    python -m emdflow.tools.calibrate_summary evaluate --model extended --random --drift 0.2
+    python -m emdflow.tools.calibrate_summary evaluate --model extended --random --drift -0.2
+
+(extended flights: speeds log-uniform 0.15..18 px/frame, contrast log-uniform 0.2..1 unless
+``--contrast-range``, 60 % with an exposure drift uniform in ±30 % across the flight, 12
+frames of history before the ``--frames`` recorded ones.)
+
 ``--backend numpy`` gives the same histograms (the backends agree bit for bit), ~30x
 slower. ``evaluate --save F.npz`` stores the rendered histograms and ``evaluate --data
 F.npz`` scores them again without rendering (for tuning :class:`SummaryOptions`).
@@ -96,7 +120,7 @@ def calibration_path(model: str) -> Path:
 
 def collect(flights: int, out: str, frames: int = 7, seed: int = 20240601, width=320, height=240,
             textures=CALIBRATION_TEXTURES, backend: str = "opencl", scale_range=(1.0, 1.0),
-            model: str = "paper"):
+            model: str = "paper", contrast_range=None):
     """Render ``flights`` random flights; store every ready frame's histogram and truth.
 
     Each flight draws a direction, a speed (log-uniform over the model's range, 0.4..18
@@ -113,7 +137,9 @@ def collect(flights: int, out: str, frames: int = 7, seed: int = 20240601, width
 
     rng = np.random.default_rng(seed)
     est = FlowEstimator(width, height, backend=backend, **MODELS[model])
-    ranges = COLLECT_RANGES[model]
+    ranges = dict(COLLECT_RANGES[model])
+    if contrast_range is not None:
+        ranges["contrast"] = tuple(contrast_range)
     # the paper's flights are ``frames`` long in all (as the committed table was made)
     total = frames if model == "paper" else frames + est.params.history_frames
     hists, flows, stats, names = [], [], [], []
@@ -173,6 +199,14 @@ U_OFFSET = 0.5
 U_COUNT = 40
 C_MAX = 60.0
 U_GRID = {"paper": (U_OFFSET, U_COUNT), "extended": (0.2, 48)}
+#: Per model, the scene-contrast classes of the table: edges on the frame's contrast
+#: statistic ``g`` (mean |ΔxP| + |ΔyP| of the prefiltered frame, gray levels; the adaptive
+#: threshold is ``clip(0.4 g, 1.5, 10)``). With the adaptive threshold the code mixture
+#: still depends on ``g``: below g = 3.75 θ sits at its floor and noise weighs more. One
+#: table per class (a third class above g = 7.5 or 11 was tried: better at 1 px/frame,
+#: 6–7 points worse at 0.25 px/frame); the paper's model has a single class (its layout is
+#: unchanged).
+CONTRAST_EDGES = {"paper": (), "extended": (3.75,)}
 #: A cell needs this much detection weight to stand on its own (else: nearest filled cell).
 MIN_CELL_WEIGHT = 100.0
 
@@ -263,8 +297,11 @@ def table_from_counts(N):
 
 
 def fit_main(data, write, model="paper"):
-    hists, flows = [], []
+    from emdflow.reference import STAT_CONTRAST
+
+    hists, flows, gs = [], [], []
     params = model_params(model)
+    samples = params.contrast_samples(320, 240)  # collect renders 320x240
     for path in data:
         d = np.load(path)
         recorded = str(d["model"]) if "model" in d.files else "paper"
@@ -274,17 +311,29 @@ def fit_main(data, write, model="paper"):
             raise SystemExit(f"{path}: histograms do not match the {model!r} channels")
         hists.append(d["hist"])
         flows.append(d["flow"])
+        gs.append(d["stats"][:, STAT_CONTRAST] / samples)
     u_offset, u_count = U_GRID[model]
-    N = accumulate(np.concatenate(hists), np.concatenate(flows), u_offset, u_count)
-    P, tot = table_from_counts(N)
+    hist, flow, g = np.concatenate(hists), np.concatenate(flows), np.concatenate(gs)
+    edges = CONTRAST_EDGES[model]
+    cls = np.searchsorted(np.asarray(edges, np.float64), g, side="right")
+    Ps, tots = [], []
+    for c in range(len(edges) + 1):
+        m = cls == c
+        print(f"contrast class {c}: {int(m.sum())} frames")
+        N = accumulate(hist[m], flow[m], u_offset, u_count)
+        P, tot = table_from_counts(N)
+        filled = (tot >= MIN_CELL_WEIGHT).mean(axis=(1, 2))
+        print("  filled share per ψ node:", " ".join(f"{x:.2f}" for x in filled))
+        Ps.append(P)
+        tots.append(tot)
+    P, tot = (Ps[0], tots[0]) if not edges else (np.stack(Ps), np.stack(tots))
     out = calibration_path(model)
-    filled = (tot >= MIN_CELL_WEIGHT).mean(axis=(1, 2))
-    print("filled share per ψ node:", " ".join(f"{x:.2f}" for x in filled))
     if write:
         extra = {}
         if model != "paper":  # the paper's table keeps its original layout, byte for byte
             extra = dict(channels=np.array(params.channels, np.int64),
-                         threshold_mode=np.array(params.threshold_mode), model=np.array(model))
+                         threshold_mode=np.array(params.threshold_mode), model=np.array(model),
+                         contrast_edges=np.asarray(edges, np.float64))
         np.savez_compressed(
             out, prob=P.astype(np.float32), psi_nodes_deg=np.asarray(PSI_NODES_DEG),
             beta_nodes=np.asarray(BETA_NODES), u_nodes=u_nodes(u_offset, u_count),
@@ -439,6 +488,8 @@ def main(argv=None):
                    help="ground scale range lo,hi (texture px per image px, log-uniform)")
     c.add_argument("--model", default="paper", choices=tuple(MODELS),
                    help="detector model (channel set and threshold mode) to calibrate")
+    c.add_argument("--contrast-range", default=None,
+                   help="scene contrast range lo,hi (default: the model's, see COLLECT_RANGES)")
     f = sub.add_parser("fit")
     f.add_argument("data", nargs="+")
     f.add_argument("--write", action="store_true",
@@ -466,7 +517,9 @@ def main(argv=None):
             ap.error(f"--textures: {', '.join(sorted(bad))} belong to the evaluation set")
         collect(a.flights, a.out, a.frames, a.seed, textures=tuple(a.textures.split(",")),
                 backend=a.backend,
-                scale_range=tuple(float(x) for x in a.scale_range.split(",")), model=a.model)
+                scale_range=tuple(float(x) for x in a.scale_range.split(",")), model=a.model,
+                contrast_range=(tuple(float(x) for x in a.contrast_range.split(","))
+                                if a.contrast_range else None))
     elif a.cmd == "fit":
         fit_main(a.data, a.write, a.model)
     else:
