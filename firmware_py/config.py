@@ -58,7 +58,9 @@ class EngineConfig:
 
     backend: str = _opt("opencl", choices=("opencl", "numpy"), doc="estimator backend")
     reset_after_gap_s: float = _opt(0.5, minimum=0.01, maximum=60.0, doc="reset after this gap, s")
-    model: str = _opt("paper", choices=("paper", "extended"), doc="detector model")
+    # "extended" by default: a flying vehicle needs the slow drift (hover) and contrast
+    # changes the paper's model is blind to; "paper" is the published model unchanged.
+    model: str = _opt("extended", choices=("paper", "extended"), doc="detector model")
     threshold: float = _opt(5.0, minimum=0.5, maximum=100.0, doc="ternary threshold, gray levels")
 
     def estimator_options(self) -> dict:

@@ -129,6 +129,8 @@ def test_cli_help_lists_exactly_the_documented_flags():
 def test_engine_model_selects_the_estimator_options(tmp_path):
     import emdflow
 
+    default = load_config(_write(tmp_path, '[engine]\nbackend = "opencl"\n')).engine
+    assert default.model == "extended", "the daemon flies the extended model unless told otherwise"
     paper = load_config(_write(tmp_path, '[engine]\nmodel = "paper"\n')).engine
     assert paper.estimator_options() == {"threshold": 5.0}
     extended = load_config(_write(tmp_path, '[engine]\nmodel = "extended"\nthreshold = 6.0\n')).engine

@@ -35,7 +35,9 @@ def _flow_qualities(msgs):
 
 def test_source_that_ends_is_reopened_while_heartbeats_continue(tmp_path):
     clip = write_video(tmp_path / "short.avi", flight_frames(12, width=96, height=72), fps=50)
-    config = _config(tmp_path, "[link]\nheartbeat_rate_hz = 10.0\n[daemon]\nreopen_backoff_s = 0.5\n"
+    # the paper's model: its 3-frame history fits a 12-frame clip (the extended model needs 12)
+    config = _config(tmp_path, 'model = "paper"\n'
+                               "[link]\nheartbeat_rate_hz = 10.0\n[daemon]\nreopen_backoff_s = 0.5\n"
                                "blind_after_s = 0.05\nlog_interval_s = 1.0\n")
     pty = PtyPair()
     drain = Drain(pty.master)
