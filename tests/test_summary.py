@@ -169,19 +169,14 @@ def test_summarize_is_cheap():
     assert (time.perf_counter() - t0) / 100 < 3e-3
 
 
-@pytest.mark.parametrize("texture,speed,angle_deg,max_rel", [
-    ("gravel", 3.0, 17.0, 0.15), ("camera", 7.0, 152.0, 0.15), ("grass", 2.0, -110.0, 0.15),
-    ("brick", 5.0, 63.0, 0.25),  # brick: the hardest texture (few, aligned edges)
-])
-def test_real_flights_off_axis(texture, speed, angle_deg, max_rel):
-    """Detector on rendered flights over evaluation textures, off-axis (OpenCL backend; the
-    numpy backend gives the same histograms)."""
-    th = math.radians(angle_deg)
+def _flight_errors(texture, speed, th, *, seed, frames=None, **engine):
+    """Median relative and direction error (deg) of the summary over a rendered flight;
+    every ready frame must have quality > 0. ``frames=None``: the history plus 4."""
     flow = (speed * math.cos(th), speed * math.sin(th))
-    flight = CameraFlight(texture, width=W, height=H, flow=flow, noise_sigma=2.0, seed=5)
-    est = emdflow.FlowEstimator(W, H, backend="opencl")
+    flight = CameraFlight(texture, width=W, height=H, flow=flow, noise_sigma=2.0, seed=seed)
+    est = emdflow.FlowEstimator(W, H, backend="opencl", **engine)
     rel, ang = [], []
-    for t in range(9):
+    for t in range(frames if frames is not None else est.params.history_frames + 4):
         field = est.update(flight.render(t))
         if not field.ready:
             continue
@@ -190,8 +185,20 @@ def test_real_flights_off_axis(texture, speed, angle_deg, max_rel):
         rel.append(math.hypot(s.flow_x - flow[0], s.flow_y - flow[1]) / speed)
         d = math.degrees(math.atan2(s.flow_y, s.flow_x) - th)
         ang.append(abs((d + 180) % 360 - 180))
-    assert np.median(rel) < max_rel
-    assert np.median(ang) < 5.0
+    return float(np.median(rel)), float(np.median(ang))
+
+
+@pytest.mark.parametrize("texture,speed,angle_deg,max_rel", [
+    ("gravel", 3.0, 17.0, 0.15), ("camera", 7.0, 152.0, 0.15), ("grass", 2.0, -110.0, 0.15),
+    ("brick", 5.0, 63.0, 0.25),  # brick: the hardest texture (few, aligned edges)
+])
+def test_real_flights_off_axis(texture, speed, angle_deg, max_rel):
+    """Detector on rendered flights over evaluation textures, off-axis (OpenCL backend; the
+    numpy backend gives the same histograms)."""
+    th = math.radians(angle_deg)
+    rel, ang = _flight_errors(texture, speed, th, seed=5, frames=9)
+    assert rel < max_rel
+    assert ang < 5.0
 
 
 def test_real_static_scene():
@@ -258,21 +265,9 @@ def test_extended_real_flights_off_axis(texture, speed, angle_deg, max_rel):
     """The extended model on rendered flights over evaluation textures, slow and off-axis
     (without its table the IoC fallback is 15–25 % / 4–11° off here)."""
     th = math.radians(angle_deg)
-    flow = (speed * math.cos(th), speed * math.sin(th))
-    flight = CameraFlight(texture, width=W, height=H, flow=flow, noise_sigma=2.0, seed=7)
-    est = emdflow.FlowEstimator(W, H, backend="opencl", **EXTENDED)
-    rel, ang = [], []
-    for t in range(est.params.history_frames + 4):
-        field = est.update(flight.render(t))
-        if not field.ready:
-            continue
-        s = summarize(field)
-        assert s.quality > 0
-        rel.append(math.hypot(s.flow_x - flow[0], s.flow_y - flow[1]) / speed)
-        d = math.degrees(math.atan2(s.flow_y, s.flow_x) - th)
-        ang.append(abs((d + 180) % 360 - 180))
-    assert np.median(rel) < max_rel
-    assert np.median(ang) < 5.0
+    rel, ang = _flight_errors(texture, speed, th, seed=7, frames=None, **EXTENDED)
+    assert rel < max_rel
+    assert ang < 5.0
 
 
 def test_extended_contracts():
