@@ -41,27 +41,18 @@ def make_colorwheel() -> np.ndarray:
         RGB colours 0..255 around the wheel, starting at red, through yellow, green,
         cyan, blue and magenta.
     """
-    ncols = _RY + _YG + _GC + _CB + _BM + _MR
-    wheel = np.zeros((ncols, 3))
+    # Each segment holds one channel at 255 and ramps another up (+1) or down (-1).
+    segments = (  # (length, full channel, ramped channel, direction)
+        (_RY, 0, 1, +1), (_YG, 1, 0, -1), (_GC, 1, 2, +1),
+        (_CB, 2, 1, -1), (_BM, 2, 0, +1), (_MR, 0, 2, -1),
+    )
+    wheel = np.zeros((sum(seg[0] for seg in segments), 3))
     col = 0
-    ramp = lambda n: np.floor(255 * np.arange(n) / n)  # noqa: E731
-    wheel[col:col + _RY, 0] = 255
-    wheel[col:col + _RY, 1] = ramp(_RY)
-    col += _RY
-    wheel[col:col + _YG, 0] = 255 - ramp(_YG)
-    wheel[col:col + _YG, 1] = 255
-    col += _YG
-    wheel[col:col + _GC, 1] = 255
-    wheel[col:col + _GC, 2] = ramp(_GC)
-    col += _GC
-    wheel[col:col + _CB, 1] = 255 - ramp(_CB)
-    wheel[col:col + _CB, 2] = 255
-    col += _CB
-    wheel[col:col + _BM, 2] = 255
-    wheel[col:col + _BM, 0] = ramp(_BM)
-    col += _BM
-    wheel[col:col + _MR, 2] = 255 - ramp(_MR)
-    wheel[col:col + _MR, 0] = 255
+    for n, full, ramped, direction in segments:
+        ramp = np.floor(255 * np.arange(n) / n)
+        wheel[col:col + n, full] = 255
+        wheel[col:col + n, ramped] = ramp if direction > 0 else 255 - ramp
+        col += n
     return wheel
 
 

@@ -93,6 +93,10 @@ class FrameSource:
 
     def close(self) -> None:
         """Release the device or file; safe to call twice."""
+        cap = getattr(self, "_cap", None)  # OpenCV-backed sources keep a VideoCapture here
+        if cap is not None:
+            cap.release()
+            self._cap = None
 
     def __enter__(self) -> "FrameSource":
         return self

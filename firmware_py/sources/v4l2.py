@@ -177,7 +177,3 @@ class V4L2Source(FrameSource):
         self._index += 1
         return frame
 
-    def close(self) -> None:
-        if self._cap is not None:
-            self._cap.release()
-            self._cap = None

@@ -126,7 +126,3 @@ class VideoFileSource(FrameSource):
         self._index += 1
         return frame
 
-    def close(self) -> None:
-        if self._cap is not None:
-            self._cap.release()
-            self._cap = None
