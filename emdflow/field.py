@@ -41,7 +41,8 @@ class FlowField:
     Attributes
     ----------
     u_code, v_code : ndarray of int8, shape (H, W)
-        Raw flow codes (owned by this field; they stay valid after the next update).
+        Raw flow codes (owned by this field; they stay valid after the next update). The
+        OpenCL backend downloads them as bit planes and unpacks them on first access.
     speeds : tuple of float
         Speed of each channel, px/frame (``u = sign(code) · speeds[|code| − 1]``).
     stats : ndarray of int64
@@ -63,14 +64,18 @@ class FlowField:
     """
 
     __slots__ = (
-        "u_code", "v_code", "speeds", "stats", "histogram", "frame_index", "ready",
-        "params", "positions", "exposure_step", "_u", "_v",
+        "speeds", "stats", "histogram", "frame_index", "ready",
+        "params", "positions", "exposure_step", "_u", "_v", "_u_code", "_v_code", "_packed", "_shape",
     )
 
     def __init__(self, u_code, v_code, stats, histogram, params: EngineParams, frame_index: int,
-                 *, positions=None, exposure_step: bool = False):
-        self.u_code = u_code
-        self.v_code = v_code
+                 *, positions=None, exposure_step: bool = False, packed=None, shape=None):
+        # either the int8 codes, or `packed` (an object whose decode() gives them, e.g. the
+        # OpenCL backend's bit planes) and the shape: decoded on first access
+        self._u_code = u_code
+        self._v_code = v_code
+        self._packed = packed
+        self._shape = tuple(shape) if shape is not None else u_code.shape
         self.stats = stats
         self.histogram = histogram
         self.positions = positions
@@ -84,7 +89,25 @@ class FlowField:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.u_code.shape
+        return self._shape
+
+    def _decode(self) -> None:
+        self._u_code, self._v_code = self._packed.decode()
+        self._packed = None
+
+    @property
+    def u_code(self) -> np.ndarray:
+        """Raw horizontal flow codes, int8 (0 none, ±(c+1) = channel c, sign = direction)."""
+        if self._u_code is None:
+            self._decode()
+        return self._u_code
+
+    @property
+    def v_code(self) -> np.ndarray:
+        """Raw vertical flow codes, int8, like ``u_code``."""
+        if self._v_code is None:
+            self._decode()
+        return self._v_code
 
     def _lookup(self) -> np.ndarray:
         return _code_table(self.speeds)

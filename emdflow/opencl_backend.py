@@ -3,8 +3,9 @@
 Design (see ``kernels/*.cl``): all state lives on the device between frames — the
 summed-area tables of the last ``max(delays) + 1`` prefiltered frames and, per channel, a
 ring of ``2D + 1`` bit-packed ternary state planes. Per frame: one upload of the uint8
-frame, five kernel launches on an in-order queue, one blocking download of one result
-buffer (flow codes + statistics + detection histogram). Sizes and tables are compile-time
+frame, four kernel launches on an in-order queue, one blocking download of one result
+buffer (flow bit planes + statistics + detection histogram; the int8 codes are unpacked
+on the host only when the dense field is read). Sizes and tables are compile-time
 constants; a program is built once per process and shape (PoCL also caches the binary on
 disk, ``POCL_CACHE_DIR``).
 """
@@ -21,7 +22,7 @@ import numpy as np
 from .params import ORIENTATION_BINS, EngineParams
 from .reference import POSITION_BINS, STAT_CONTRAST, STAT_FIRST_CHANGED
 
-__all__ = ["OpenCLEngine", "list_devices", "kernel_source"]
+__all__ = ["OpenCLEngine", "PackedCodes", "list_devices", "kernel_source"]
 
 _INSTALL_HINT = (
     "install an OpenCL runtime: `pip install \"emdflow[pocl]\"` (pyopencl with the PoCL CPU "
@@ -29,7 +30,7 @@ _INSTALL_HINT = (
     "OpenCL ICD (e.g. `apt-get install pocl-opencl-icd`, Mali/Jetson drivers) plus "
     "`pip install \"emdflow[opencl]\"`; or use backend=\"numpy\" (slow)"
 )
-_STAGES = ("common.cl", "prefilter.cl", "integral.cl", "states.cl", "evd.cl", "evidence.cl")
+_STAGES = ("common.cl", "prefilter.cl", "integral.cl", "states.cl", "evidence.cl", "evd.cl")
 _PROGRAMS: dict = {}
 _LOCK = threading.Lock()
 
@@ -105,7 +106,7 @@ class _Layout:
 
     SPAD = 16  # left padding of SAT rows (>= max radius + 1: 16-lane loads stay in bounds)
     PPAD = 16  # left padding of P rows
-    HIST_COPIES = 8  # histogram copies the evidence kernel spreads its atomics over
+    HIST_COPIES = 8  # histogram copies the detector kernel spreads its evidence atomics over
 
     def __init__(self, width: int, height: int, params: EngineParams):
         self.W, self.H = width, height
@@ -129,22 +130,28 @@ class _Layout:
         self.pos_size = 2 * 2 * len(chans) * POSITION_BINS
         self.n_fixed = STAT_FIRST_CHANGED + len(chans)
         self.n_stats = self.n_fixed + self.pos_size + self.HIST_COPIES * self.hist_size
-        self.stats_offset = _ceil(2 * width * height, 64) * 64
+        # output: per axis five bit planes (winning channel index, 4 bits, and sign) of
+        # OW words per row (whole 8-word vectors)
+        self.OW = _ceil(self.NW, 8) * 8
+        self.out_words = 2 * 5 * height * self.OW
+        self.stats_offset = _ceil(4 * self.out_words, 64) * 64
         self.result_bytes = self.stats_offset + 4 * self.n_stats
         table = EngineParams.orientation_table()
         w = params.weights
         join = lambda v: ", ".join(str(int(x)) for x in v)  # noqa: E731
         self.defines = {
             "W": width, "H": height, "NW": self.NW, "NWP": self.NWP, "PADR": self.PADR,
-            "HSTRIDE": self.HSTRIDE, "PSTRIDE": self.PSTRIDE, "PPAD": self.PPAD,
+            "OW": self.OW, "HSTRIDE": self.HSTRIDE, "PSTRIDE": self.PSTRIDE, "PPAD": self.PPAD,
             "SSTRIDE": self.SSTRIDE, "SPAD": self.SPAD, "SAT_SLOTS": self.SAT_SLOTS,
             "NCH": len(chans),
             "CH_K": join(k for k, _ in chans), "CH_D": join(d for _, d in chans),
             "CH_RING": join(self.rings), "CH_BASE": join(self.bases),
             "RADIUS": len(w) // 2, "WEIGHTS": join(w),
             "SHARP": int(params.sharp_templates),
-            "STATS_OFFSET": self.stats_offset,
+            "STATS_OFFSET": self.stats_offset, "N_STATS": self.n_stats,
             "EVIDENCE_ROW_STEP": params.evidence_row_step(height),
+            # bits of a 32-pixel word in the sampled columns (the step is a power of two)
+            "EVIDENCE_COLUMNS": "0x%08Xu" % sum(1 << j for j in range(0, 32, params.evidence_column_step(width))),
             "HIST_COPIES": self.HIST_COPIES,
             "POS_BINS": POSITION_BINS,
             "FINEST_CHANNEL": chans.index((params.scales[0], 1)),
@@ -175,7 +182,7 @@ def _program(ctx, device, layout: _Layout, debug: bool):
     return prog
 
 
-_KERNELS = ("prefilter_columns", "integral_rows", "ternary_states", "velocity_detectors", "summary_evidence")
+_KERNELS = ("prefilter_columns", "integral_rows", "ternary_states", "velocity_detectors")
 
 
 def _build(cl, ctx, device, source: str):
@@ -210,6 +217,26 @@ def _context(device):
     return hit
 
 
+class PackedCodes:
+    """The detector's output as downloaded: per axis, bit planes of the winning channel
+    index ``c + 1`` (4 bits) and of the sign, 32 pixels per word (bit j of word i =
+    pixel ``32 i + j``). :meth:`decode` gives the int8 codes ``±(c + 1)`` (0 = none)."""
+
+    __slots__ = ("words", "width")
+
+    def __init__(self, words: np.ndarray, width: int):
+        self.words = words  # (2 axes, 5 planes, H, OW) uint32
+        self.width = width
+
+    def decode(self) -> tuple[np.ndarray, np.ndarray]:
+        w = self.words
+        bits = np.unpackbits(w.astype("<u4", copy=False).view(np.uint8), axis=-1, bitorder="little")
+        bits = bits[..., : self.width]  # (2, 5, H, W) of 0/1
+        index = (bits[:, 0] | (bits[:, 1] << 1) | (bits[:, 2] << 2) | (bits[:, 3] << 3)).view(np.int8)
+        codes = np.where(bits[:, 4].astype(bool), -index, index)
+        return codes[0], codes[1]
+
+
 class OpenCLEngine:
     """Device-resident detector; same interface and results as ``ReferenceEngine``."""
 
@@ -242,7 +269,6 @@ class OpenCLEngine:
         self._k_integral = cl.Kernel(prg, "integral_rows")
         self._k_states = cl.Kernel(prg, "ternary_states")
         self._k_evd = cl.Kernel(prg, "velocity_detectors")
-        self._k_evidence = cl.Kernel(prg, "summary_evidence")
         # Explicit work-group sizes: PoCL's own choice sometimes puts a whole frame in one
         # or two groups and then runs it on one thread. Global sizes are padded to whole
         # groups; the kernels return early past the frame.
@@ -251,6 +277,13 @@ class OpenCLEngine:
         self._g_strips = (_ceil(strips, 2) * 2,)
         self._g_rows = (_ceil(height, 4) * 4,)
         self._g_words = (words, _ceil(height, 8) * 8)
+        # buffer arguments are set once; per frame only the scalars change (pyopencl's
+        # Kernel.__call__ would set every argument again: ~10 us per launch)
+        zero = np.int32(0)
+        self._k_prefilter.set_args(self.frame_buf, self.h_buf, self.p_buf, self.sat_buf, self.result, zero)
+        self._k_integral.set_args(self.sat_buf, zero)
+        self._k_states.set_args(self.sat_buf, self.planes, self.p_buf, self.frame_buf, self.result, zero, zero)
+        self._k_evd.set_args(self.planes, self.result, self.debug_buf, self.sat_buf, zero)
         self.reset()
 
     def reset(self) -> None:
@@ -260,26 +293,30 @@ class OpenCLEngine:
         self.t = 0
         self.theta_q = self.params.threshold_q(self.params.threshold)  # threshold of the next frame
 
-    def step(self, frame: np.ndarray):
-        """Process one frame; returns ``(u_code, v_code, stats, hist, positions)`` like the reference."""
+    def step_packed(self, frame: np.ndarray):
+        """Process one frame; returns ``(codes, stats, hist, positions)``.
+
+        ``codes`` is a :class:`PackedCodes` (the detector's bit planes, ~6x smaller than
+        the int8 codes); ``codes.decode()`` gives ``(u_code, v_code)`` like the reference.
+        """
         cl, q, lay = self._cl, self.queue, self.layout
         t = np.int32(self.t)
         slot = np.int32(self.t % lay.SAT_SLOTS)
         cl.enqueue_copy(q, self.frame_buf, np.ascontiguousarray(frame), is_blocking=False)
-        cl.enqueue_fill_buffer(q, self.result, np.uint8(0), lay.stats_offset, 4 * lay.n_stats)
-        self._k_prefilter(q, self._g_strips, self._l_strips, self.frame_buf, self.h_buf, self.p_buf, self.sat_buf,
-                          slot)
-        self._k_integral(q, self._g_rows, self._l_rows, self.sat_buf, slot)
-        self._k_states(q, self._g_rows, self._l_rows, self.sat_buf, self.planes, self.p_buf, self.frame_buf,
-                       self.result, t, np.int32(self.theta_q))
-        self._k_evd(q, self._g_words, self._l_words, self.planes, self.result, self.debug_buf, t)
-        self._k_evidence(q, self._g_rows, self._l_rows, self.result, self.sat_buf, t)
+        launch = cl.enqueue_nd_range_kernel
+        self._k_prefilter.set_arg(5, slot)
+        launch(q, self._k_prefilter, self._g_strips, self._l_strips)
+        self._k_integral.set_arg(1, slot)
+        launch(q, self._k_integral, self._g_rows, self._l_rows)
+        self._k_states.set_arg(5, t)
+        self._k_states.set_arg(6, np.int32(self.theta_q))
+        launch(q, self._k_states, self._g_rows, self._l_rows)
+        self._k_evd.set_arg(4, t)
+        launch(q, self._k_evd, self._g_words, self._l_words)
         host = np.empty(lay.result_bytes, np.uint8)
         cl.enqueue_copy(q, host, self.result, is_blocking=True)
         self.t += 1
-        hw = lay.W * lay.H
-        u_code = host[:hw].view(np.int8).reshape(lay.H, lay.W)
-        v_code = host[hw : 2 * hw].view(np.int8).reshape(lay.H, lay.W)
+        codes = PackedCodes(host[: 4 * lay.out_words].view(np.uint32).reshape(2, 5, lay.H, lay.OW), lay.W)
         ints = host[lay.stats_offset :].view(np.int32)
         n_ch = len(lay.channels)
         stats = ints[: lay.n_fixed].astype(np.int64)
@@ -289,7 +326,13 @@ class OpenCLEngine:
         positions = ints[lay.n_fixed : lay.n_fixed + lay.pos_size].astype(np.int64)
         copies = ints[lay.n_fixed + lay.pos_size :].reshape(lay.HIST_COPIES, lay.hist_size)
         hist = copies.sum(axis=0, dtype=np.int64).reshape(2, 2 * n_ch, ORIENTATION_BINS)
-        return u_code, v_code, stats, hist, positions.reshape(2, 2 * n_ch, POSITION_BINS)
+        return codes, stats, hist, positions.reshape(2, 2 * n_ch, POSITION_BINS)
+
+    def step(self, frame: np.ndarray):
+        """Process one frame; returns ``(u_code, v_code, stats, hist, positions)`` like the reference."""
+        codes, stats, hist, positions = self.step_packed(frame)
+        u_code, v_code = codes.decode()
+        return u_code, v_code, stats, hist, positions
 
     # ---- inspection (tests): unpack device state into the reference's representation ----
     def _unpack(self, words: np.ndarray) -> np.ndarray:

@@ -219,6 +219,16 @@ class EngineParams:
         return max(2, int(height) // 60)
 
     @staticmethod
+    def evidence_column_step(width: int) -> int:
+        """Columns between the columns whose detections feed the summary histogram.
+
+        1 up to 639 px wide, 2 from 640, 4 from 1280, …: at most ~320–640 sampled columns
+        of ~60 sampled rows, so the summary sees about as many detections at 640×480 as at
+        320×240 (where its likelihood was calibrated) and the evidence costs the same.
+        """
+        return 1 << max(0, (int(width) // 320).bit_length() - 1)
+
+    @staticmethod
     def orientation_table() -> np.ndarray:
         """Boundary directions of the orientation bins as int64 ``(cos, sin)`` × 2**14.
 

@@ -271,7 +271,8 @@ def summary_statistics(
       most of them on at once);
     * nonzero states per channel;
     * the detection histogram ``hist[axis, code, orientation]``: detections on every
-      ``EngineParams.evidence_row_step(H)``-th row,
+      ``EngineParams.evidence_row_step(H)``-th row and
+      ``EngineParams.evidence_column_step(W)``-th column,
       ``axis`` 0 = horizontal / 1 = vertical, ``code = 2c + (1 if negative)``,
       ``orientation`` the bin of the gradient of the receptor image ``R_k`` at the middle
       receptor ``B`` at ``t−D`` (spec §6), reads clamped to the valid receptor range;
@@ -309,8 +310,10 @@ def summary_statistics(
     hist = np.zeros((2, 2 * len(channels), ORIENTATION_BINS), np.int64)
     for axis, code in enumerate((u_code, v_code)):
         step = params.evidence_row_step(H)
-        ys, xs = np.nonzero(code[0::step])
+        xstep = params.evidence_column_step(W)
+        ys, xs = np.nonzero(code[0::step, 0::xstep])
         ys = ys * step
+        xs = xs * xstep
         if ys.size == 0:
             continue
         cval = code[ys, xs].astype(np.int64)

@@ -15,10 +15,13 @@
  *   RADIUS, WEIGHTS prefilter half-width and integer taps (sum 256)
  *   SHARP           1 to accept the sharp template
  *   EVIDENCE_ROW_STEP  rows between the rows whose detections feed the histogram
+ *   EVIDENCE_COLUMNS   mask of the sampled columns within a 32-pixel word
  *   HIST_COPIES     copies of the histogram (spread the atomic increments over cache lines)
  *   POS_BINS        position bins of the detection position histogram
  *   FINEST_CHANNEL  channel whose positive states are counted (brightness steps)
+ *   OW              words per row of the output bit planes (NW rounded up to 8)
  *   STATS_OFFSET    byte offset of the int32 statistics in the result buffer
+ *   N_STATS         int32 statistics (counters, position and orientation histograms)
  *   NBINS           orientation bins; ORIENT_C, ORIENT_S boundary table (x 2^14)
  *
  * Vectors are kept at 256 bits (ushort16, uint8): PoCL 3.0 miscompiles some 512-bit
@@ -97,3 +100,37 @@ inline uint pack16(short16 mask)
     return (uint)(a2.x | a2.y);
 }
 #endif
+/* ---- states/prefilter helpers ---- */
+/* Unsigned saturating subtraction and a 32-lane mask pack. On x86 with AVX2 these are
+ * vpsubusw and vpacksswb + vpermq + vpmovmskb (one pack for both 16-lane halves); the
+ * portable versions use selects and pack16. */
+#if defined(EMD_X86_BUILTINS) && defined(__AVX2__)
+typedef short emd_v16hi __attribute__((__vector_size__(32)));
+typedef char emd_v32qi __attribute__((__vector_size__(32)));
+typedef long emd_v4di __attribute__((__vector_size__(32)));
+inline ushort16 subs_u16(ushort16 a, ushort16 b)
+{
+    return __builtin_astype(__builtin_ia32_psubusw256(__builtin_astype(a, emd_v16hi),
+                                                      __builtin_astype(b, emd_v16hi)), ushort16);
+}
+/* bit l of the result = lane l of lo, bit 16 + l = lane l of hi (masks all-ones = true) */
+inline uint pack32(short16 lo, short16 hi)
+{
+    const emd_v32qi p = __builtin_ia32_packsswb256(__builtin_astype(lo, emd_v16hi),
+                                                   __builtin_astype(hi, emd_v16hi));
+    const emd_v4di q = __builtin_astype(p, emd_v4di);
+    return (uint)__builtin_ia32_pmovmskb256(
+        __builtin_astype(__builtin_shufflevector(q, q, 0, 2, 1, 3), emd_v32qi));
+}
+#else
+inline ushort16 subs_u16(ushort16 a, ushort16 b) { return a > b ? a - b : (ushort16)(0); }
+inline uint pack32(short16 lo, short16 hi) { return pack16(lo) | (pack16(hi) << 16); }
+#endif
+/* bits [lo, hi] of a 32-bit word (empty if hi < lo; both may lie outside 0..31) */
+inline uint bit_range(int lo, int hi)
+{
+    lo = lo < 0 ? 0 : lo;
+    hi = hi > 31 ? 31 : hi;
+    return hi < lo ? 0u : ((0xFFFFFFFFu >> (31 - hi)) & (0xFFFFFFFFu << lo));
+}
+/* ---- end ---- */

@@ -1,4 +1,4 @@
-/* Stage 4: Elementary Velocity Detectors (paper section 3) and fusion, bit-sliced.
+/* Stage 4 (last): Elementary Velocity Detectors (paper section 3) and fusion, bit-sliced.
  * One work item per 8 consecutive 32-pixel words of a row (256 pixels, one uint8 vector
  * per bit plane); every template test is a few bitwise operations on whole vectors. The
  * state planes carry zero padding (a word left and right, PADR rows above and below), so
@@ -8,7 +8,11 @@
  * the velocity template fires when the same (polarity, type) motion template matches
  * A->B on the states at (t-2D, t-D) and B->C on the states at (t-D, t).
  * Fusion: the fastest channel that fires wins; both directions at that channel =
- * ambiguous (no output). Output: int8 codes +-(c+1) per pixel and axis. */
+ * ambiguous (no output). Output per axis: five bit planes, the winning channel index
+ * c + 1 (4 bits) and the sign; the host turns them into int8 codes +-(c+1) only when the
+ * dense field is read. On every EVIDENCE_ROW_STEP-th row the detections are also binned
+ * for the summary (evidence.cl): one launch less, and the planes are still in L1. The axes are fused one after the other: the fusion state of one
+ * axis (6 vectors) plus the template operands fit the 16 AVX2 registers, both did not. */
 
 /* bits of pixels x0 + j + s, j = 0..31, for 0 < |s| < 32, for 8 words at once */
 inline uint8 along(__global const uint *p, int s)
@@ -22,95 +26,95 @@ inline uint8 at(__global const uint *p, int dy, int dx)
     return dx == 0 ? LOAD_W8(p + dy * NWP) : along(p + dy * NWP, dx);
 }
 
-/* byte j of the result is bit j of the low 4 bits of m (one byte per pixel) */
-inline uint8 spread4(uint8 m)
+inline uint lane_popcount(uint8 v)
 {
-    return ((m & 0xFu) * 0x00204081u) & 0x01010101u;
+    return POPCOUNT(v.s0) + POPCOUNT(v.s1) + POPCOUNT(v.s2) + POPCOUNT(v.s3)
+         + POPCOUNT(v.s4) + POPCOUNT(v.s5) + POPCOUNT(v.s6) + POPCOUNT(v.s7);
+}
+
+/* velocity template matches of channel c at the 256 pixels from word i of row y, for
+ * the direction (dx, dy) in units of k */
+__attribute__((always_inline)) inline uint8 matches(__global const uint *planes, int c, int t, int y, int i, int ux, int uy)
+{
+    const int k = CK[c], D = CD[c], L = CRING[c], base = CBASE[c];
+    const int s0 = base + pos_mod(t - 2 * D, L), s1 = base + pos_mod(t - D, L), s2 = base + t % L;
+    __global const uint *P0 = planes + PLANE_ROW(s0, 0, y) + i, *N0 = planes + PLANE_ROW(s0, 1, y) + i;
+    __global const uint *P1 = planes + PLANE_ROW(s1, 0, y) + i, *N1 = planes + PLANE_ROW(s1, 1, y) + i;
+    __global const uint *P2 = planes + PLANE_ROW(s2, 0, y) + i, *N2 = planes + PLANE_ROW(s2, 1, y) + i;
+    const int dx = ux * k, dy = uy * k;
+    const uint8 pa0 = LOAD_W8(P0), na0 = LOAD_W8(N0), pa1 = LOAD_W8(P1), na1 = LOAD_W8(N1);
+    const uint8 pb0 = at(P0, dy, dx), nb0 = at(N0, dy, dx);
+    const uint8 pb1 = at(P1, dy, dx), nb1 = at(N1, dy, dx);
+    const uint8 pb2 = at(P2, dy, dx), nb2 = at(N2, dy, dx);
+    const uint8 pc1 = at(P1, 2 * dy, 2 * dx), nc1 = at(N1, 2 * dy, 2 * dx);
+    const uint8 pc2 = at(P2, 2 * dy, 2 * dx), nc2 = at(N2, 2 * dy, 2 * dx);
+    /* z..: no state (za1 = A empty at t-D, zb0 = B empty at t-2D, ...) */
+    const uint8 za1 = ~(pa1 | na1), zb0 = ~(pb0 | nb0), zb2 = ~(pb2 | nb2), zc1 = ~(pc1 | nc1);
+    /* per polarity: A and B, C share it; start [p 0 / p p] and end [p p / 0 p] on both
+     * links, factored: start = a0 & ~b0 & a1 & b1 & ~c1 & b2 & c2, end = a0 & b0 & ~a1 &
+     * b1 & c1 & ~b2 & c2 */
+    const uint8 pcom = pa0 & pb1 & pc2, ncom = na0 & nb1 & nc2;
+    const uint8 start = zb0 & zc1, end = za1 & zb2;
+    uint8 fired = (pcom & ((start & pa1 & pb2) | (end & pb0 & pc1)))
+                | (ncom & ((start & na1 & nb2) | (end & nb0 & nc1)));
+#if SHARP
+    /* sharp [p 0 / 0 p] on both links */
+    fired |= (pcom | ncom) & zb0 & za1 & zc1 & zb2;
+#endif
+    return fired;
 }
 
 __kernel void velocity_detectors(__global const uint *planes, __global char *result,
-                                 __global uint *debug, int t)
+                                 __global uint *debug, __global const ushort *sat, int t)
 {
     const int i = get_global_id(0) * 8;   /* first word */
     const int y = get_global_id(1);
     if (y >= H) return;  /* the global size is padded to whole work-groups */
-    uint8 decided[2], sign[2], idx[2][4];
-    for (int a = 0; a < 2; a++) {
-        decided[a] = sign[a] = (uint8)(0u);
-        for (int b = 0; b < 4; b++) idx[a][b] = (uint8)(0u);
-    }
+    __global int *stats = (__global int *)(result + STATS_OFFSET);
+    __global uint *out = (__global uint *)result + y * OW + i;
 
-#pragma unroll
-    for (int c = NCH - 1; c >= 0; c--) {
-        const int k = CK[c], D = CD[c], L = CRING[c], base = CBASE[c];
-        const int s0 = base + pos_mod(t - 2 * D, L), s1 = base + pos_mod(t - D, L), s2 = base + t % L;
-        __global const uint *P0 = planes + PLANE_ROW(s0, 0, y) + i, *N0 = planes + PLANE_ROW(s0, 1, y) + i;
-        __global const uint *P1 = planes + PLANE_ROW(s1, 0, y) + i, *N1 = planes + PLANE_ROW(s1, 1, y) + i;
-        __global const uint *P2 = planes + PLANE_ROW(s2, 0, y) + i, *N2 = planes + PLANE_ROW(s2, 1, y) + i;
-        const uint8 pa0 = LOAD_W8(P0), na0 = LOAD_W8(N0), pa1 = LOAD_W8(P1), na1 = LOAD_W8(N1);
-        const uint8 za1 = ~(pa1 | na1);
-        uint8 m[4];
-#pragma unroll
-        for (int dir = 0; dir < 4; dir++) {
-            /* E, W: neighbours along the row; S, N: neighbours k rows away */
-            const int dx = dir == 0 ? k : (dir == 1 ? -k : 0);
-            const int dy = dir == 2 ? k : (dir == 3 ? -k : 0);
-            const uint8 pb0 = at(P0, dy, dx), nb0 = at(N0, dy, dx);
-            const uint8 pb1 = at(P1, dy, dx), nb1 = at(N1, dy, dx);
-            const uint8 pb2 = at(P2, dy, dx), nb2 = at(N2, dy, dx);
-            const uint8 pc1 = at(P1, 2 * dy, 2 * dx), nc1 = at(N1, 2 * dy, 2 * dx);
-            const uint8 pc2 = at(P2, 2 * dy, 2 * dx), nc2 = at(N2, 2 * dy, 2 * dx);
-            const uint8 zb0 = ~(pb0 | nb0), zb2 = ~(pb2 | nb2), zc1 = ~(pc1 | nc1);
-            /* start [p 0 / p p] on both links */
-            const uint8 sp = pa0 & zb0 & pa1 & pb1 & zc1 & pb2 & pc2;
-            const uint8 sn = na0 & zb0 & na1 & nb1 & zc1 & nb2 & nc2;
-            /* end [p p / 0 p] on both links */
-            const uint8 ep = pa0 & pb0 & za1 & pb1 & pc1 & zb2 & pc2;
-            const uint8 en = na0 & nb0 & za1 & nb1 & nc1 & zb2 & nc2;
-            uint8 fired = sp | sn | ep | en;
-#if SHARP
-            /* sharp [p 0 / 0 p] on both links */
-            fired |= (pa0 & zb0 & za1 & pb1 & zc1 & zb2 & pc2) | (na0 & zb0 & za1 & nb1 & zc1 & zb2 & nc2);
-#endif
-            m[dir] = fired;
-        }
-#ifdef DEBUG_MATCHES
-        for (int dir = 0; dir < 4; dir++)
-            if (i < NW) STORE_W8(debug + ((c * 4 + dir) * H + y) * NWP + i, m[dir]);
-#endif
-#pragma unroll
-        for (int axis = 0; axis < 2; axis++) {
-            const uint8 mp = m[2 * axis], mn = m[2 * axis + 1];
-            const uint8 p = mp & ~decided[axis], n = mn & ~decided[axis];
-            sign[axis] |= n & ~p;
-#pragma unroll
-            for (int b = 0; b < 4; b++)
-                if (((c + 1) >> b) & 1) idx[axis][b] |= p ^ n;
-            decided[axis] |= mp | mn;
-        }
-    }
-
-    /* Codes, 4 pixels per 32-bit lane: one byte per pixel built from the index planes;
-     * negative codes negated bytewise (no carries: codes are 1..15). */
-#pragma unroll
     for (int axis = 0; axis < 2; axis++) {
-        __global char *out = result + axis * H * W + y * W;
+        uint8 decided = (uint8)(0u), sign = (uint8)(0u);
+        uint8 idx0 = decided, idx1 = decided, idx2 = decided, idx3 = decided;
 #pragma unroll
-        for (int q = 0; q < 8; q++) {
-            const uint sh = 4 * q;
-            uint8 code = spread4(idx[axis][0] >> sh) | (spread4(idx[axis][1] >> sh) << 1u)
-                       | (spread4(idx[axis][2] >> sh) << 2u) | (spread4(idx[axis][3] >> sh) << 3u);
-            const uint8 sg = spread4(sign[axis] >> sh);
-            code = (code ^ (sg * 0xFFu)) + sg;
-            const uint lanes[8] = {code.s0, code.s1, code.s2, code.s3, code.s4, code.s5, code.s6, code.s7};
-            for (int w = 0; w < 8; w++) {
-                const int x = (i + w) * 32 + 4 * q;
-                if (x + 4 <= W) {
-                    STORE_U32(out + x, lanes[w]);
-                } else {
-                    for (int l = 0; x + l < W; l++) out[x + l] = (char)(lanes[w] >> (8 * l));
-                }
+        for (int c = NCH - 1; c >= 0; c--) {
+            /* E, W along the row; S, N k rows away */
+            const uint8 mp = axis ? matches(planes, c, t, y, i, 0, 1) : matches(planes, c, t, y, i, 1, 0);
+            const uint8 mn = axis ? matches(planes, c, t, y, i, 0, -1) : matches(planes, c, t, y, i, -1, 0);
+#ifdef DEBUG_MATCHES
+            if (i < NW) {
+                STORE_W8(debug + ((c * 4 + 2 * axis) * H + y) * NWP + i, mp);
+                STORE_W8(debug + ((c * 4 + 2 * axis + 1) * H + y) * NWP + i, mn);
             }
+#endif
+            const uint8 p = mp & ~decided, n = mn & ~decided, won = p ^ n;
+            sign |= n & ~p;
+            if ((c + 1) & 1) idx0 |= won;
+            if ((c + 1) & 2) idx1 |= won;
+            if ((c + 1) & 4) idx2 |= won;
+            if ((c + 1) & 8) idx3 |= won;
+            decided |= mp | mn;
+        }
+        /* planes (axis, bit, y, word); sign only where there is a winner */
+        __global uint *o = out + axis * 5 * H * OW;
+        const uint8 any = idx0 | idx1 | idx2 | idx3;
+        STORE_W8(o, idx0);
+        STORE_W8(o + H * OW, idx1);
+        STORE_W8(o + 2 * H * OW, idx2);
+        STORE_W8(o + 3 * H * OW, idx3);
+        STORE_W8(o + 4 * H * OW, sign);   /* set only where a channel won */
+        const uint count = lane_popcount(any);
+        if (count) ATOMIC_ADD(stats + (axis ? STAT_V : STAT_U), (int)count);
+        if (count && y % EVIDENCE_ROW_STEP == 0) {
+            /* the summary's evidence (evidence.cl), from the planes just stored (in L1).
+             * HIST_COPIES histograms, one per work-group row modulo the count: the CPU
+             * threads then rarely increment the same cache line (the host adds them up) */
+            __global int *hist = stats + STAT_HIST + (get_group_id(1) % HIST_COPIES) * HIST_SIZE;
+            evidence_runs runs = { -1, 0, -1, 0 };
+            for (int w = 0; w < 8 && i + w < NW; w++)
+                bin_detections(stats, hist, sat, t, axis, y, i + w, o[w], o[w + H * OW], o[w + 2 * H * OW],
+                               o[w + 3 * H * OW], o[w + 4 * H * OW], &runs);
+            flush_runs(stats, hist, &runs);
         }
     }
 }

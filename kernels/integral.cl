@@ -1,13 +1,33 @@
 /* Stage 2: row prefix sums turn the column sums into the summed-area table
  * S[y + 1][SPAD + x + 1] = sum of P over [0..y] x [0..x] (uint16, wrapping; row 0 and
- * column SPAD stay 0). One work item per row. */
+ * column SPAD stay 0). One work item per row, 16 columns per step: an in-register
+ * log-step prefix (lane shifts within each 8-lane half, which AVX2 does in one vpslldq,
+ * then the low half's total into the high half) plus the running total of the row. */
+#define EMD_Z (ushort16)(0)
+#define SHL1(v) __builtin_shufflevector(v, EMD_Z, 16, 0, 1, 2, 3, 4, 5, 6, 16, 8, 9, 10, 11, 12, 13, 14)
+#define SHL2(v) __builtin_shufflevector(v, EMD_Z, 16, 16, 0, 1, 2, 3, 4, 5, 16, 16, 8, 9, 10, 11, 12, 13)
+#define SHL4(v) __builtin_shufflevector(v, EMD_Z, 16, 16, 16, 16, 0, 1, 2, 3, 16, 16, 16, 16, 8, 9, 10, 11)
+#define LOW7(v) __builtin_shufflevector(v, EMD_Z, 16, 16, 16, 16, 16, 16, 16, 16, 7, 7, 7, 7, 7, 7, 7, 7)
+#define ALL15(v) __builtin_shufflevector(v, v, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15)
+
 __kernel void integral_rows(__global ushort *sat, int slot)
 {
     const int y = get_global_id(0);
     if (y >= H) return;  /* the global size is padded to whole work-groups */
     __global ushort *row = sat + slot * SAT_SIZE + (y + 1) * SSTRIDE + SPAD + 1;
-    ushort acc = 0;
-    for (int x = 0; x < W; x++) {
+    ushort16 carry = EMD_Z;
+    int x = 0;
+    for (; x + 16 <= W; x += 16) {
+        ushort16 v = LOAD_US16(row + x);
+        v += SHL1(v);
+        v += SHL2(v);
+        v += SHL4(v);
+        v += LOW7(v);
+        STORE_US16(row + x, v + carry);
+        carry += ALL15(v);  /* off the prefix's path: one add of loop-carried latency */
+    }
+    ushort acc = carry.s0;
+    for (; x < W; x++) {
         acc += row[x];
         row[x] = acc;
     }

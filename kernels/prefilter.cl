@@ -3,33 +3,53 @@
  * horizontal pass of the row RADIUS below (reads clamped to the frame, rounded to gray
  * levels), the vertical pass of the current row from the strip's own horizontal results,
  * and the running column sums (uint16 arithmetic wraps; every box sum taken from the table
- * is below 2^16, so box sums stay exact). */
+ * is below 2^16, so box sums stay exact).
+ * The taps are symmetric (w[i] == w[2 RADIUS - i]): mirror pairs are added first and
+ * multiplied once. Sums stay below 2^16 (255 * 256 + 128), so ushort lanes are exact. */
 
 __constant ushort PF_W[2 * RADIUS + 1] = { WEIGHTS };
 
+/* 128 + sum_i w[i] * src[i * step - RADIUS * step], 16 lanes (src at the centre tap) */
+#define TAPS16(acc, src, step)                                                          \
+    do {                                                                                \
+        acc = (ushort16)(128) + PF_W[RADIUS] * convert_ushort16(LOAD_UC16(src));       \
+        _Pragma("unroll") for (int i_ = 0; i_ < RADIUS; i_++)                           \
+            acc += PF_W[i_] * (convert_ushort16(LOAD_UC16((src) - (RADIUS - i_) * (step))) \
+                               + convert_ushort16(LOAD_UC16((src) + (RADIUS - i_) * (step)))); \
+    } while (0)
+
 inline ushort16 horizontal16(__global const uchar *row, int x0)
 {
-    ushort16 acc = (ushort16)(128);
+    ushort16 acc;
     if (x0 >= RADIUS && x0 + 15 + RADIUS <= W - 1) {
-        for (int i = 0; i < 2 * RADIUS + 1; i++)
-            acc += PF_W[i] * convert_ushort16(LOAD_UC16(row + x0 + i - RADIUS));
+        TAPS16(acc, row + x0, 1);
     } else {
-        ushort16_u tmp;
-        ushort *lanes = (ushort *)&tmp;
-        for (int l = 0; l < 16; l++) {
-            uint s = 128;
-            for (int i = 0; i < 2 * RADIUS + 1; i++)
-                s += PF_W[i] * row[CLAMPI(x0 + l + i - RADIUS, 0, W - 1)];
-            lanes[l] = (ushort)s;
-        }
-        acc = tmp.v;
+        /* frame edge: copy the clamped reads, then the same vector taps */
+        uchar ext[16 + 2 * RADIUS + 16];
+        for (int j = 0; j < 16 + 2 * RADIUS; j++)
+            ext[j] = row[CLAMPI(x0 + j - RADIUS, 0, W - 1)];
+        const uchar *c = ext + RADIUS;
+        /* packed-struct loads: vload16 is a library call on PoCL */
+#define LOAD_PRIV16(p) convert_ushort16(((const uchar16_u *)(p))->v)
+        acc = (ushort16)(128) + PF_W[RADIUS] * LOAD_PRIV16(c);
+        _Pragma("unroll") for (int i = 0; i < RADIUS; i++)
+            acc += PF_W[i] * (LOAD_PRIV16(c - (RADIUS - i)) + LOAD_PRIV16(c + (RADIUS - i)));
     }
     return acc >> 8;
 }
 
 __kernel void prefilter_columns(__global const uchar *frame, __global uchar *hbuf,
-                                __global uchar *P, __global ushort *sat, int slot)
+                                __global uchar *P, __global ushort *sat, __global char *result, int slot)
 {
+    /* first, zero this work item's share of the frame's counters and histograms (the later
+     * stages add to them atomically): cheaper than a separate fill command */
+    {
+        __global int *stats = (__global int *)(result + STATS_OFFSET);
+        const int n = (int)get_global_size(0), share = (N_STATS + n - 1) / n;
+        const int first = (int)get_global_id(0) * share;
+        const int last = first + share < N_STATS ? first + share : N_STATS;
+        for (int j = first; j < last; j++) stats[j] = 0;
+    }
     const int x0 = get_global_id(0) * 16;
     if (x0 >= W) return;  /* the global size is padded to whole work-groups */
     __global ushort *S = sat + slot * SAT_SIZE + SPAD + 1 + x0;
@@ -40,10 +60,15 @@ __kernel void prefilter_columns(__global const uchar *frame, __global uchar *hbu
         if (y + RADIUS < H)
             STORE_UC16(hbuf + (y + RADIUS) * HSTRIDE + x0,
                        convert_uchar16(horizontal16(frame + (y + RADIUS) * W, x0)));
-        ushort16 acc = (ushort16)(128);
-        for (int j = 0; j < 2 * RADIUS + 1; j++) {
-            const int yy = CLAMPI(y + j - RADIUS, 0, H - 1);
-            acc += PF_W[j] * convert_ushort16(LOAD_UC16(hbuf + yy * HSTRIDE + x0));
+        ushort16 acc;
+        if (y >= RADIUS && y + RADIUS < H) {
+            TAPS16(acc, hbuf + y * HSTRIDE + x0, HSTRIDE);
+        } else {
+            acc = (ushort16)(128);
+            _Pragma("unroll") for (int j = 0; j < 2 * RADIUS + 1; j++) {
+                const int yy = CLAMPI(y + j - RADIUS, 0, H - 1);
+                acc += PF_W[j] * convert_ushort16(LOAD_UC16(hbuf + yy * HSTRIDE + x0));
+            }
         }
         const ushort16 p = acc >> 8;
         /* lanes beyond W fall in padding that nothing reads unmasked */

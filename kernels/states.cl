@@ -22,9 +22,10 @@ __kernel void ternary_states(__global const ushort *sat, __global uint *planes,
     const int y = get_global_id(0);
     if (y >= H) return;  /* the global size is padded to whole work-groups */
     __global int *stats = (__global int *)(result + STATS_OFFSET);
-    const short16 lane = (short16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
     __global const ushort *S_now = sat + (t % SAT_SLOTS) * SAT_SIZE;
 
+    /* unrolled: k, r and the load offsets become constants */
+    #pragma unroll
     for (int c = 0; c < NCH; c++) {
         const int k = CK[c], r = k / 2, D = CD[c];
         const ushort T = (ushort)((theta_q * k * k) >> 8);   /* floor(theta k^2) */
@@ -36,16 +37,33 @@ __kernel void ternary_states(__global const ushort *sat, __global uint *planes,
             continue;
         }
         __global const ushort *S_then = sat + pos_mod(t - D, SAT_SLOTS) * SAT_SIZE;
+        /* words from i_edge on hold pixels past W - 1 - r; word 0 holds x < r */
+        const int i_edge = (W - r) / 32;
         int changed = 0, brightening = 0;
         for (int i = 0; i < NW; i++) {
-            uint pw = 0, nw = 0;
-            for (int part = 0; part < 2; part++) {
-                const int x = i * 32 + part * 16;
-                const ushort16 now = box16(S_now, y, x, r), then = box16(S_then, y, x, r);
-                const short16 xs = lane + (short)x;
-                const short16 valid = (xs >= (short)r) & (xs <= (short)(W - 1 - r));
-                pw |= pack16((now > then) & (now - then > T) & valid) << (part * 16);
-                nw |= pack16((then > now) & (then - now > T) & valid) << (part * 16);
+            const int x = i * 32;
+            const ushort16 now0 = box16(S_now, y, x, r), then0 = box16(S_then, y, x, r);
+            const ushort16 now1 = box16(S_now, y, x + 16, r), then1 = box16(S_then, y, x + 16, r);
+            uint pw, nw;
+            if (k <= 11) {
+                /* |now - then| <= 121 * 255 < 2^15: the int16 difference is exact */
+                const short Ts = T > 32767 ? 32767 : (short)T;
+                const short16 d0 = as_short16(now0 - then0), d1 = as_short16(now1 - then1);
+                pw = pack32(d0 > Ts, d1 > Ts);
+                nw = pack32(d0 < (short)-Ts, d1 < (short)-Ts);
+            } else {
+                /* now - then > T  <=>  sat(sat(now - T) - then) != 0 (likewise negative) */
+                const ushort16 Tv = (ushort16)(T);
+                const short16 z = (short16)(0);
+                pw = ~pack32(as_short16(subs_u16(subs_u16(now0, Tv), then0)) == z,
+                             as_short16(subs_u16(subs_u16(now1, Tv), then1)) == z);
+                nw = ~pack32(as_short16(subs_u16(subs_u16(then0, Tv), now0)) == z,
+                             as_short16(subs_u16(subs_u16(then1, Tv), now1)) == z);
+            }
+            if (i == 0 || i >= i_edge) {
+                const uint valid = bit_range(r - x, W - 1 - r - x);
+                pw &= valid;
+                nw &= valid;
             }
             pos_row[i] = pw;
             neg_row[i] = nw;
@@ -58,11 +76,15 @@ __kernel void ternary_states(__global const ushort *sat, __global uint *planes,
 
     if ((y & 1) == 0) {
         /* textured: even interior rows, |dP/dx| + |dP/dy| (central differences) > floor(2
-         * theta); contrast: the sum of that quantity (drives the adaptive threshold) */
+         * theta); contrast: the sum of that quantity (drives the adaptive threshold).
+         * Counted per lane, summed once per row. */
+        const short16 lane = (short16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
         const short tex_t = (short)((2 * theta_q) >> 8);
         int textured = 0, saturated = 0, contrast = 0;
         if (y >= 2 && y <= H - 2) {
             __global const uchar *row = P + y * PSTRIDE + PPAD;
+            short16 tex_n = (short16)(0);   /* lane counts: at most W / 16 */
+            int8 con = (int8)(0);
             for (int x = 0; x < W; x += 16) {
                 short16 gx = convert_short16(LOAD_UC16(row + x + 1)) - convert_short16(LOAD_UC16(row + x - 1));
                 short16 gy = convert_short16(LOAD_UC16(row + PSTRIDE + x)) - convert_short16(LOAD_UC16(row - PSTRIDE + x));
@@ -71,18 +93,21 @@ __kernel void ternary_states(__global const ushort *sat, __global uint *planes,
                 const short16 sx = gx >> 15, sy = gy >> 15;
                 const short16 inside = (xs >= (short)1) & (xs <= (short)(W - 2));
                 const short16 g = (((gx ^ sx) - sx) + ((gy ^ sy) - sy)) & inside;
-                textured += POPCOUNT(pack16(g > tex_t));
-                const short8 g8 = g.lo + g.hi;  /* <= 2 * 510: no overflow */
-                const int4 g4 = convert_int4(g8.lo) + convert_int4(g8.hi);
-                contrast += g4.x + g4.y + g4.z + g4.w;
+                tex_n -= g > tex_t;
+                con += convert_int8(g.lo + g.hi);  /* <= 2 * 510: no overflow */
             }
+            const short8 t8 = tex_n.lo + tex_n.hi;
+            const int4 t4 = convert_int4(t8.lo) + convert_int4(t8.hi);
+            textured = t4.x + t4.y + t4.z + t4.w;
+            const int4 c4 = con.lo + con.hi;
+            contrast = c4.x + c4.y + c4.z + c4.w;
         }
-        /* saturated: even rows, raw value <= 2 or >= 253 */
+        /* saturated: even rows, raw value <= 2 or >= 253, i.e. (uchar)(v + 3) <= 5 */
         __global const uchar *raw = frame + y * W;
         int x = 0;
         for (; x + 16 <= W; x += 16) {
-            const uchar16 v = LOAD_UC16(raw + x);
-            saturated += POPCOUNT(pack16(convert_short16((v <= (uchar)2) | (v >= (uchar)253))));
+            const uchar16 v = LOAD_UC16(raw + x) + (uchar)3;
+            saturated += POPCOUNT(pack16(convert_short16(v <= (uchar)5)));
         }
         for (; x < W; x++) saturated += (raw[x] <= 2) | (raw[x] >= 253);
         if (textured) ATOMIC_ADD(stats + STAT_TEXTURED, textured);

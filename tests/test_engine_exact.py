@@ -62,6 +62,15 @@ def test_random_and_flight_sequences(size):
     assert _compare(width, height, frames) > 0
 
 
+@pytest.mark.parametrize("size", [(661, 37), (1283, 21)])
+def test_wide_frames(size):
+    # from 640 px the summary's evidence samples every 2nd (from 1280 every 4th) column
+    width, height = size
+    assert EngineParams.evidence_column_step(width) > 1
+    flight = CameraFlight("grass", width=width, height=height, flow=(2.6, 1.2), noise_sigma=2, seed=4)
+    assert _compare(width, height, [flight.render(t) for t in range(6)]) > 0
+
+
 @pytest.mark.parametrize("direction", ["E", "W", "S", "N"])
 @pytest.mark.parametrize("polarity", [1, -1])
 def test_structured_edges_every_direction_and_polarity(direction, polarity):
