@@ -52,6 +52,23 @@ def test_arrays_belong_to_caller_and_are_lazy(backend):
     assert first.u is first.u  # cached
 
 
+def test_opencl_codes_stay_packed_until_read_and_match_numpy():
+    pytest.importorskip("pyopencl")
+    ocl = emdflow.FlowEstimator(96, 72, backend="opencl")
+    ref = emdflow.FlowEstimator(96, 72, backend="numpy")
+    flight = _flight(flow=(2.2, -1.4), noise_sigma=2)
+    pairs = [(ocl.update(f), ref.update(f)) for f in (flight.render(t) for t in range(7))]
+    assert pairs[4][0]._u_code is None, "the OpenCL field must not unpack its codes eagerly"
+    detections = 0
+    for field_o, field_r in pairs:  # unpacked only now, after later updates
+        np.testing.assert_array_equal(field_o.u_code, field_r.u_code)
+        np.testing.assert_array_equal(field_o.v_code, field_r.v_code)
+        np.testing.assert_array_equal(field_o.u, field_r.u)
+        assert field_o.u_detections == np.count_nonzero(field_o.u_code)
+        detections += field_o.u_detections + field_o.v_detections
+    assert detections > 0
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_reset_forgets_history(backend):
     est = emdflow.FlowEstimator(96, 72, backend=backend)
