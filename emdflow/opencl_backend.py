@@ -296,8 +296,9 @@ class OpenCLEngine:
     def step_packed(self, frame: np.ndarray):
         """Process one frame; returns ``(codes, stats, hist, positions)``.
 
-        ``codes`` is a :class:`PackedCodes` (the detector's bit planes, ~6x smaller than
-        the int8 codes); ``codes.decode()`` gives ``(u_code, v_code)`` like the reference.
+        ``codes`` is a :class:`PackedCodes` (the detector's bit planes: 10 bits per pixel
+        instead of two int8 codes, and no per-pixel work on the host);
+        ``codes.decode()`` gives ``(u_code, v_code)`` like the reference.
         """
         cl, q, lay = self._cl, self.queue, self.layout
         t = np.int32(self.t)
