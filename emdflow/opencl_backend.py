@@ -117,6 +117,8 @@ class _Layout:
         self.PSTRIDE = self.PPAD + self.NW * 32 + 32
         self.SSTRIDE = self.SPAD + self.NW * 32 + 32
         self.SAT_SLOTS = params.max_delay + 1
+        # difference table S_t - S_(t-1) for the delay-1 channels at scales <= 11
+        self.DSAT = int(any(d == 1 and k <= 11 for k, d in params.channels))
         chans = params.channels
         if len(chans) > 15:
             raise ValueError(f"{len(chans)} channels: at most 15 (scales x delays) are supported")
@@ -142,7 +144,7 @@ class _Layout:
         self.defines = {
             "W": width, "H": height, "NW": self.NW, "NWP": self.NWP, "PADR": self.PADR,
             "OW": self.OW, "HSTRIDE": self.HSTRIDE, "PSTRIDE": self.PSTRIDE, "PPAD": self.PPAD,
-            "SSTRIDE": self.SSTRIDE, "SPAD": self.SPAD, "SAT_SLOTS": self.SAT_SLOTS,
+            "SSTRIDE": self.SSTRIDE, "SPAD": self.SPAD, "SAT_SLOTS": self.SAT_SLOTS, "DSAT": self.DSAT,
             "NCH": len(chans),
             "CH_K": join(k for k, _ in chans), "CH_D": join(d for _, d in chans),
             "CH_RING": join(self.rings), "CH_BASE": join(self.bases),
@@ -256,11 +258,12 @@ class OpenCLEngine:
         self.h_buf = cl.Buffer(ctx, mf.READ_WRITE, lay.HSTRIDE * height + tail)
         self.p_buf = cl.Buffer(ctx, mf.READ_WRITE, lay.PSTRIDE * height + tail)
         self.sat_buf = cl.Buffer(ctx, mf.READ_WRITE, 2 * lay.sat_elems * lay.SAT_SLOTS + tail)
+        self.dsat_buf = cl.Buffer(ctx, mf.READ_WRITE, (2 * lay.sat_elems if lay.DSAT else 0) + tail)
         self.planes = cl.Buffer(ctx, mf.READ_WRITE, 4 * 2 * lay.plane_slots * lay.plane_words)
         self.result = cl.Buffer(ctx, mf.READ_WRITE, lay.result_bytes)
         debug_words = 4 * len(params.channels) * height * lay.NWP if debug else 1
         self.debug_buf = cl.Buffer(ctx, mf.READ_WRITE, 4 * debug_words)
-        for buf in (self.frame_buf, self.h_buf, self.p_buf, self.sat_buf):
+        for buf in (self.frame_buf, self.h_buf, self.p_buf, self.sat_buf, self.dsat_buf):
             cl.enqueue_fill_buffer(self.queue, buf, np.uint8(0), 0, buf.size)
         # kernel objects of our own (the program is shared per process and shape; kernel
         # arguments are per object, so engines in different threads never collide)
@@ -281,8 +284,9 @@ class OpenCLEngine:
         # Kernel.__call__ would set every argument again: ~10 us per launch)
         zero = np.int32(0)
         self._k_prefilter.set_args(self.frame_buf, self.h_buf, self.p_buf, self.sat_buf, self.result, zero)
-        self._k_integral.set_args(self.sat_buf, zero)
-        self._k_states.set_args(self.sat_buf, self.planes, self.p_buf, self.frame_buf, self.result, zero, zero)
+        self._k_integral.set_args(self.sat_buf, self.dsat_buf, zero)
+        self._k_states.set_args(self.sat_buf, self.dsat_buf, self.planes, self.p_buf, self.frame_buf, self.result,
+                                zero, zero)
         self._k_evd.set_args(self.planes, self.result, self.debug_buf, self.sat_buf, zero)
         self.reset()
 
@@ -307,10 +311,10 @@ class OpenCLEngine:
         launch = cl.enqueue_nd_range_kernel
         self._k_prefilter.set_arg(5, slot)
         launch(q, self._k_prefilter, self._g_strips, self._l_strips)
-        self._k_integral.set_arg(1, slot)
+        self._k_integral.set_arg(2, slot)
         launch(q, self._k_integral, self._g_rows, self._l_rows)
-        self._k_states.set_arg(5, t)
-        self._k_states.set_arg(6, np.int32(self.theta_q))
+        self._k_states.set_arg(6, t)
+        self._k_states.set_arg(7, np.int32(self.theta_q))
         launch(q, self._k_states, self._g_rows, self._l_rows)
         self._k_evd.set_arg(4, t)
         launch(q, self._k_evd, self._g_words, self._l_words)

@@ -8,6 +8,8 @@
  *   PSTRIDE, PPAD   row stride and left padding of the prefiltered image P (uchar)
  *   SSTRIDE, SPAD   row stride and left padding of the summed-area tables (ushort, H + 1 rows)
  *   SAT_SLOTS       summed-area tables kept (max delay + 1)
+ *   DSAT            1 if some channel has D = 1 and k <= 11: integral_rows also writes the
+ *                   difference table S_t - S_(t-1) that ternary_states reads for them
  *   NCH             channels (scale, delay), sorted by increasing speed
  *   CH_K, CH_D, CH_RING, CH_BASE   per-channel scale, delay, state ring length (2D + 1)
  *                   and first plane slot (the threshold theta_q = round(256 theta) is a

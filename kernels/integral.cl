@@ -2,7 +2,12 @@
  * S[y + 1][SPAD + x + 1] = sum of P over [0..y] x [0..x] (uint16, wrapping; row 0 and
  * column SPAD stay 0). One work item per row, 16 columns per step: an in-register
  * log-step prefix (lane shifts within each 8-lane half, which AVX2 does in one vpslldq,
- * then the low half's total into the high half) plus the running total of the row. */
+ * then the low half's total into the high half) plus the running total of the row.
+ * With DSAT, each finished row is also subtracted from the same row of the previous
+ * frame's table (slot - 1, finished a frame ago): dsat = S_t - S_(t-1), the summed-area
+ * table of P_t - P_(t-1) (uint16, wrapping), from which ternary_states takes the delay-1
+ * differences of the small scales in 4 loads instead of 8. At t = 0 (and after reset())
+ * the previous slot is stale or zero: nothing reads dsat before t = 1. */
 #define EMD_Z (ushort16)(0)
 #define SHL1(v) __builtin_shufflevector(v, EMD_Z, 16, 0, 1, 2, 3, 4, 5, 6, 16, 8, 9, 10, 11, 12, 13, 14)
 #define SHL2(v) __builtin_shufflevector(v, EMD_Z, 16, 16, 0, 1, 2, 3, 4, 5, 16, 16, 8, 9, 10, 11, 12, 13)
@@ -10,11 +15,16 @@
 #define LOW7(v) __builtin_shufflevector(v, EMD_Z, 16, 16, 16, 16, 16, 16, 16, 16, 7, 7, 7, 7, 7, 7, 7, 7)
 #define ALL15(v) __builtin_shufflevector(v, v, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15)
 
-__kernel void integral_rows(__global ushort *sat, int slot)
+__kernel void integral_rows(__global ushort *sat, __global ushort *dsat, int slot)
 {
     const int y = get_global_id(0);
     if (y >= H) return;  /* the global size is padded to whole work-groups */
     __global ushort *row = sat + slot * SAT_SIZE + (y + 1) * SSTRIDE + SPAD + 1;
+#if DSAT
+    const int prev = slot == 0 ? SAT_SLOTS - 1 : slot - 1;
+    __global const ushort *prow = sat + prev * SAT_SIZE + (y + 1) * SSTRIDE + SPAD + 1;
+    __global ushort *drow = dsat + (y + 1) * SSTRIDE + SPAD + 1;
+#endif
     ushort16 carry = EMD_Z;
     int x = 0;
     for (; x + 16 <= W; x += 16) {
@@ -23,12 +33,19 @@ __kernel void integral_rows(__global ushort *sat, int slot)
         v += SHL2(v);
         v += SHL4(v);
         v += LOW7(v);
-        STORE_US16(row + x, v + carry);
+        const ushort16 s = v + carry;
+        STORE_US16(row + x, s);
+#if DSAT
+        STORE_US16(drow + x, s - LOAD_US16(prow + x));
+#endif
         carry += ALL15(v);  /* off the prefix's path: one add of loop-carried latency */
     }
     ushort acc = carry.s0;
     for (; x < W; x++) {
         acc += row[x];
         row[x] = acc;
+#if DSAT
+        drow[x] = acc - prow[x];
+#endif
     }
 }
