@@ -11,6 +11,10 @@ median ms/frame over the blocks and ratios measured in the same run:
 * ``numpy``    — the vectorised reference (fewer, shorter blocks: it is slow);
 * ``dis``      — OpenCV's DIS optical flow, ULTRAFAST preset, between consecutive frames;
 * ``blur``     — one ``cv2.GaussianBlur`` 11×11 pass (a yardstick for memory speed).
+
+``emdflow bench --stages`` prints instead where one frame's time goes: the device time of
+each command (upload, the four kernels, download) from OpenCL profiling events, the gaps
+between them and the host's wall time per frame.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ import time
 
 import numpy as np
 
-__all__ = ["main", "run_benchmark"]
+__all__ = ["main", "profile_stages", "run_benchmark"]
 
 SIZES = ((320, 240), (640, 480))
 
@@ -121,6 +125,47 @@ def write_plot(results: dict, path: str) -> None:
     plt.close(fig)
 
 
+def profile_stages(width: int, height: int, *, frames: int = 200, backend_kwargs=None) -> dict:
+    """Device time of each command of a frame (OpenCL profiling events), median ms.
+
+    The engine runs on a profiling queue over a camera flight; ``"wall"`` is the host's
+    time for the whole ``step`` (upload to downloaded result), ``"gaps"`` what the device
+    timeline spends between the first command's start and the last one's end outside
+    the commands (scheduling, thread wake-ups).
+    """
+    import pyopencl as cl
+
+    from .opencl_backend import OpenCLEngine
+    from .params import EngineParams
+
+    clip = _frames(width, height, 40)
+    engine = OpenCLEngine(width, height, EngineParams(**(backend_kwargs or {})))
+    engine.queue = cl.CommandQueue(engine.ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
+    for i in range(10):
+        engine.step_packed(clip[i % len(clip)])
+    engine.trace = []
+    walls = []
+    per_stage = {name: [] for name in OpenCLEngine.STAGES}
+    gaps = []
+    for i in range(frames):
+        t0 = time.perf_counter()
+        engine.step_packed(clip[i % len(clip)])
+        walls.append((time.perf_counter() - t0) * 1e3)
+        # read the events at once: they keep the frame's host arrays alive, and fresh
+        # pages for every frame's result would add page faults to the download
+        events = engine.trace.pop()
+        busy = 0.0
+        for name, ev in zip(OpenCLEngine.STAGES, events):
+            ms = (ev.profile.end - ev.profile.start) * 1e-6
+            per_stage[name].append(ms)
+            busy += ms
+        gaps.append((events[-1].profile.end - events[0].profile.start) * 1e-6 - busy)
+    out = {name: statistics.median(v) for name, v in per_stage.items()}
+    out["gaps"] = statistics.median(gaps)
+    out["wall"] = statistics.median(walls)
+    return out
+
+
 def _environment() -> str:
     import platform
 
@@ -142,6 +187,8 @@ def main(argv=None) -> int:
     parser.add_argument("--plot", metavar="PNG", help="also write a bar chart to this PNG file")
     parser.add_argument("--json", metavar="FILE", help="also write the results as JSON")
     parser.add_argument("--delays", default="1", help="temporal delays of the engine, e.g. 1,2,4 (default: 1 = the paper)")
+    parser.add_argument("--stages", action="store_true",
+                        help="instead: device time per command of a frame (OpenCL profiling events)")
     args = parser.parse_args(argv)
     try:
         sizes = [tuple(int(v) for v in s.lower().split("x")) for s in args.sizes.split(",")]
@@ -150,6 +197,12 @@ def main(argv=None) -> int:
     delays = tuple(int(d) for d in args.delays.split(","))
     kwargs = {"delays": delays} if delays != (1,) else None
     print(f"# emdflow bench — {_environment()}", flush=True)
+    if args.stages:
+        for width, height in sizes:
+            stages = profile_stages(width, height, backend_kwargs=kwargs)
+            cells = " | ".join(f"{name} {ms:.3f}" for name, ms in stages.items())
+            print(f"{width}x{height} (median ms per frame): {cells}")
+        return 0
     results = run_benchmark(sizes=sizes, block=args.block, rounds=args.rounds, backend_kwargs=kwargs,
                             progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
     print(format_table(results))

@@ -288,6 +288,8 @@ class OpenCLEngine:
         self._k_states.set_args(self.sat_buf, self.dsat_buf, self.planes, self.p_buf, self.frame_buf, self.result,
                                 zero, zero)
         self._k_evd.set_args(self.planes, self.result, self.debug_buf, self.sat_buf, zero)
+        #: set to a list to collect each frame's command events (needs a profiling queue)
+        self.trace = None
         self.reset()
 
     def reset(self) -> None:
@@ -296,6 +298,9 @@ class OpenCLEngine:
         self.queue.finish()
         self.t = 0
         self.theta_q = self.params.threshold_q(self.params.threshold)  # threshold of the next frame
+
+    #: names of the commands of one frame, in the order of ``trace`` entries
+    STAGES = ("upload", "prefilter_columns", "integral_rows", "ternary_states", "velocity_detectors", "download")
 
     def step_packed(self, frame: np.ndarray):
         """Process one frame; returns ``(codes, stats, hist, positions)``.
@@ -307,19 +312,23 @@ class OpenCLEngine:
         cl, q, lay = self._cl, self.queue, self.layout
         t = np.int32(self.t)
         slot = np.int32(self.t % lay.SAT_SLOTS)
-        cl.enqueue_copy(q, self.frame_buf, np.ascontiguousarray(frame), is_blocking=False)
         launch = cl.enqueue_nd_range_kernel
         self._k_prefilter.set_arg(5, slot)
-        launch(q, self._k_prefilter, self._g_strips, self._l_strips)
         self._k_integral.set_arg(2, slot)
-        launch(q, self._k_integral, self._g_rows, self._l_rows)
         self._k_states.set_arg(6, t)
         self._k_states.set_arg(7, np.int32(self.theta_q))
-        launch(q, self._k_states, self._g_rows, self._l_rows)
         self._k_evd.set_arg(4, t)
-        launch(q, self._k_evd, self._g_words, self._l_words)
         host = np.empty(lay.result_bytes, np.uint8)
-        cl.enqueue_copy(q, host, self.result, is_blocking=True)
+        events = (
+            cl.enqueue_copy(q, self.frame_buf, np.ascontiguousarray(frame), is_blocking=False),
+            launch(q, self._k_prefilter, self._g_strips, self._l_strips),
+            launch(q, self._k_integral, self._g_rows, self._l_rows),
+            launch(q, self._k_states, self._g_rows, self._l_rows),
+            launch(q, self._k_evd, self._g_words, self._l_words),
+            cl.enqueue_copy(q, host, self.result, is_blocking=True),
+        )
+        if self.trace is not None:  # profiling (emdflow bench --stages)
+            self.trace.append(events)
         self.t += 1
         codes = PackedCodes(host[: 4 * lay.out_words].view(np.uint32).reshape(2, 5, lay.H, lay.OW), lay.W)
         ints = host[lay.stats_offset :].view(np.int32)
