@@ -140,6 +140,8 @@ class _Layout:
         self.result_bytes = self.stats_offset + 4 * self.n_stats
         table = EngineParams.orientation_table()
         w = params.weights
+        if list(w) != list(w)[::-1]:  # prefilter.cl adds mirror taps before multiplying
+            raise ValueError(f"prefilter taps {list(w)} are not symmetric; the OpenCL prefilter needs them to be")
         join = lambda v: ", ".join(str(int(x)) for x in v)  # noqa: E731
         self.defines = {
             "W": width, "H": height, "NW": self.NW, "NWP": self.NWP, "PADR": self.PADR,

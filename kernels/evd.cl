@@ -11,8 +11,9 @@
  * ambiguous (no output). Output per axis: five bit planes, the winning channel index
  * c + 1 (4 bits) and the sign; the host turns them into int8 codes +-(c+1) only when the
  * dense field is read. On every EVIDENCE_ROW_STEP-th row the detections are also binned
- * for the summary (evidence.cl): one launch less, and the planes are still in L1. The axes are fused one after the other: the fusion state of one
- * axis (6 vectors) plus the template operands fit the 16 AVX2 registers, both did not. */
+ * for the summary (evidence.cl): one launch less, and the planes are still in L1.
+ * The axes are fused one after the other: the fusion state of one axis (6 vectors) plus
+ * the template operands fit the 16 AVX2 registers; both axes at once spilled. */
 
 /* bits of pixels x0 + j + s, j = 0..31, for 0 < |s| < 32, for 8 words at once */
 inline uint8 along(__global const uint *p, int s)
@@ -95,7 +96,7 @@ __kernel void velocity_detectors(__global const uint *planes, __global char *res
             if ((c + 1) & 8) idx3 |= won;
             decided |= mp | mn;
         }
-        /* planes (axis, bit, y, word); sign only where there is a winner */
+        /* planes (axis, bit, y, word) */
         __global uint *o = out + axis * 5 * H * OW;
         const uint8 any = idx0 | idx1 | idx2 | idx3;
         STORE_W8(o, idx0);
