@@ -233,12 +233,26 @@ class PackedCodes:
         self.width = width
 
     def decode(self) -> tuple[np.ndarray, np.ndarray]:
-        w = self.words
-        bits = np.unpackbits(w.astype("<u4", copy=False).view(np.uint8), axis=-1, bitorder="little")
-        bits = bits[..., : self.width]  # (2, 5, H, W) of 0/1
-        index = (bits[:, 0] | (bits[:, 1] << 1) | (bits[:, 2] << 2) | (bits[:, 3] << 3)).view(np.int8)
-        codes = np.where(bits[:, 4].astype(bool), -index, index)
+        # 8 pixels at a time: a byte of each plane indexes a table of 8 code bytes (bit b
+        # of the index at each set pixel), and the sign byte a table of 0xFF masks
+        planes = self.words.astype("<u4", copy=False).view(np.uint8)  # (2, 5, H, 4 OW)
+        spread = _SPREAD_TABLE
+        code = spread[planes[:, 0]] | (spread[planes[:, 1]] << 1) | (spread[planes[:, 2]] << 2) \
+            | (spread[planes[:, 3]] << 3)
+        minus = spread[planes[:, 4]] * np.uint64(0xFF)
+        # negate bytewise where the sign is set: (c ^ 0xFF) + 1, no carries (1 <= c <= 15)
+        code = (code ^ minus) + (minus & np.uint64(0x0101010101010101))
+        codes = code.view(np.int8)  # (2, H, 32 OW)
+        if codes.shape[-1] != self.width:
+            codes = np.ascontiguousarray(codes[..., : self.width])
         return codes[0], codes[1]
+
+
+# byte p of entry v is bit p of v: 8 pixels of a bit plane -> 8 bytes of 0/1
+_SPREAD_TABLE = (
+    np.unpackbits(np.arange(256, dtype=np.uint8)[:, None], axis=1, bitorder="little")
+    .astype("<u1").copy().view("<u8").ravel()
+)
 
 
 class OpenCLEngine:
