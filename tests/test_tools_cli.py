@@ -277,7 +277,7 @@ def test_bench_stages_times_every_command_of_a_frame(capsys):
     from emdflow.opencl_backend import OpenCLEngine
 
     stages = bench.profile_stages(96, 72, frames=30)
-    assert list(stages) == [*OpenCLEngine.STAGES, "gaps", "wall"]
+    assert list(stages) == [*OpenCLEngine.STAGES, "gaps", "wall", "decode"]
     kernels = [stages[name] for name in OpenCLEngine.STAGES[1:-1]]
     assert all(ms > 0 for ms in kernels), stages
     assert stages["gaps"] >= 0
