@@ -154,19 +154,14 @@ class FlowEstimator:
             arrays belong to the caller.
         """
         frame = self._check(frame)
-        if hasattr(self._engine, "step_packed"):
-            # OpenCL: the codes stay bit-packed until the dense field is read
-            packed, stats, hist, positions = self._engine.step_packed(frame)
-            u_code = v_code = None
-        else:
-            u_code, v_code, stats, hist, positions = self._engine.step(frame)
-            packed = None
+        # the codes stay behind decode() (bit-packed on OpenCL) until the dense field is read
+        packed, stats, hist, positions = self._engine.step_packed(frame)
         self._frames += 1
         if _is_brightness_step(stats, self.params, self.width * self.height):
             self._last_step = self._frames
         # the step's states sit in the templates of this frame and the next two
         in_templates = self._last_step is not None and self._frames - self._last_step < 3
-        return FlowField(u_code, v_code, stats, hist, self.params, self._frames, positions=positions,
+        return FlowField(None, None, stats, hist, self.params, self._frames, positions=positions,
                          exposure_step=in_templates, packed=packed, shape=(self.height, self.width))
 
     def reset(self) -> None:

@@ -411,3 +411,21 @@ class ReferenceEngine:
         self.theta_q = prm.next_threshold_q(int(stats[STAT_CONTRAST]), prm.contrast_samples(*frame.shape[::-1]))
         self.frame_count += 1
         return u_code, v_code, stats, hist, positions
+
+    def step_packed(self, frame: np.ndarray):
+        """Like :meth:`step`, with the codes behind ``decode()`` as the OpenCL backend
+        returns them (here already unpacked): ``(codes, stats, hist, positions)``."""
+        u_code, v_code, stats, hist, positions = self.step(frame)
+        return _Codes(u_code, v_code), stats, hist, positions
+
+
+class _Codes:
+    """Unpacked flow codes behind the ``decode()`` of the OpenCL backend's ``PackedCodes``."""
+
+    __slots__ = ("u_code", "v_code")
+
+    def __init__(self, u_code: np.ndarray, v_code: np.ndarray):
+        self.u_code, self.v_code = u_code, v_code
+
+    def decode(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.u_code, self.v_code

@@ -82,7 +82,7 @@ class Stats:
         self.stage_max = dict.fromkeys(self.STAGES, 0)
         self.stage_n = dict.fromkeys(self.STAGES, 0)
         self.last_summary = None
-        self.last_cues = None
+        self.last_field = None
         self.started_host_us = host_us()
 
     def stage(self, name: str, us: int) -> None:
@@ -614,10 +614,12 @@ class Daemon:
             return
         t1 = host_us()
         summary = _summarize(field)
-        cues = looming_cues(field)
+        # the looming cues go out per frame only as extra values; the status line
+        # computes them from the last field when it is due
+        cues = looming_cues(field) if self.config.link.extra_values else None
         t2 = host_us()
         extras = ()
-        if self.config.link.extra_values:
+        if cues is not None:
             ttc_s = cues.time_to_contact_s(self.fps) if self.fps > 0 else math.inf
             extras = (("expansion", cues.expansion_rate * (self.fps or 1.0)),  # 1/s
                       ("ttc_s", ttc_s if math.isfinite(ttc_s) else -1.0),
@@ -631,7 +633,7 @@ class Daemon:
         self.stats.stage("link", t3 - t2)
         self.stats.processed += 1
         self.stats.last_summary = summary
-        self.stats.last_cues = cues
+        self.stats.last_field = field
         self._prev = frame
         self._last_frame_host_s = now_s
         self.subset.observe_busy((t3 - t0) / 1e6, now_s)
@@ -665,7 +667,7 @@ class Daemon:
         lat50, lat99 = _percentiles(self.latencies_us if iv is None else self._interval_latencies)
         s = self.stats.last_summary
         flow = f"flow {s.flow_x:+.2f},{s.flow_y:+.2f} px/frame q {s.quality}" if s else "flow -"
-        c = self.stats.last_cues
+        c = looming_cues(self.stats.last_field) if self.stats.last_field is not None else None
         if c is not None and c.detections:
             ttc = c.time_to_contact_s(self.fps) if self.fps > 0 else math.inf
             flow += (f" | expansion {c.expansion_rate * (self.fps or 1.0):+.3f}/s ttc "

@@ -111,11 +111,12 @@ __kernel void velocity_detectors(__global const uint *planes, __global char *res
              * HIST_COPIES histograms, one per work-group row modulo the count: the CPU
              * threads then rarely increment the same cache line (the host adds them up) */
             __global int *hist = stats + STAT_HIST + (get_group_id(1) % HIST_COPIES) * HIST_SIZE;
-            evidence_runs runs = { -1, 0, -1, 0 };
+            bin_run pos_run = { -1, 0 }, hist_run = { -1, 0 };
             for (int w = 0; w < 8 && i + w < NW; w++)
-                bin_detections(stats, hist, sat, t, axis, y, i + w, o[w], o[w + H * OW], o[w + 2 * H * OW],
-                               o[w + 3 * H * OW], o[w + 4 * H * OW], &runs);
-            flush_runs(stats, hist, &runs);
+                bin_detections(stats + STAT_POS, hist, sat, t, axis, y, i + w, o[w], o[w + H * OW],
+                               o[w + 2 * H * OW], o[w + 3 * H * OW], o[w + 4 * H * OW], &pos_run, &hist_run);
+            run_flush(stats + STAT_POS, &pos_run);
+            run_flush(hist, &hist_run);
         }
     }
 }

@@ -42,24 +42,32 @@ __attribute__((always_inline)) inline int orientation_bin(int gx, int gy)
     return n;
 }
 
-/* Run-length state: neighbouring detections along an edge often fall in the same bin, so
- * runs are counted and each flushed with one atomic add. */
-typedef struct { int hist_bin, hist_len, pos_bin, pos_len; } evidence_runs;
+/* Run-length counting: neighbouring detections along an edge often fall in the same bin,
+ * so each run of equal bins is flushed with one atomic add. */
+typedef struct { int bin, len; } bin_run;
 
-__attribute__((always_inline)) inline void flush_runs(__global int *stats, __global int *hist,
-                                                      evidence_runs *runs)
+__attribute__((always_inline)) inline void run_count(__global int *counts, bin_run *run, int bin)
 {
-    if (runs->hist_len) ATOMIC_ADD(hist + runs->hist_bin, runs->hist_len);
-    if (runs->pos_len) ATOMIC_ADD(stats + STAT_POS + runs->pos_bin, runs->pos_len);
-    runs->hist_len = runs->pos_len = 0;
-    runs->hist_bin = runs->pos_bin = -1;
+    if (bin != run->bin) {
+        if (run->len) ATOMIC_ADD(counts + run->bin, run->len);
+        run->bin = bin;
+        run->len = 0;
+    }
+    run->len++;
+}
+
+__attribute__((always_inline)) inline void run_flush(__global int *counts, bin_run *run)
+{
+    if (run->len) ATOMIC_ADD(counts + run->bin, run->len);
+    run->bin = -1;
+    run->len = 0;
 }
 
 /* Bin the detections of word i of row y (bit planes b0..b3 = channel index c + 1, bs =
- * sign) of one axis. */
-inline void bin_detections(__global int *stats, __global int *hist, __global const ushort *sat, int t,
+ * sign) of one axis into the position and orientation histograms. */
+inline void bin_detections(__global int *positions, __global int *hist, __global const ushort *sat, int t,
                            int axis, int y, int i, uint b0, uint b1, uint b2, uint b3, uint bs,
-                           evidence_runs *runs)
+                           bin_run *pos_run, bin_run *hist_run)
 {
     uint any = (b0 | b1 | b2 | b3) & EVIDENCE_COLUMNS;
     while (any) {
@@ -70,13 +78,7 @@ inline void bin_detections(__global int *stats, __global int *hist, __global con
                             | (((b3 >> l) & 1u) << 3)) - 1;
         const int negative = (int)((bs >> l) & 1u);
         const int where = axis ? y * POS_BINS / H : x * POS_BINS / W;
-        const int pbin = ((axis * 2 * NCH) + 2 * c + negative) * POS_BINS + where;
-        if (pbin != runs->pos_bin) {
-            if (runs->pos_len) ATOMIC_ADD(stats + STAT_POS + runs->pos_bin, runs->pos_len);
-            runs->pos_bin = pbin;
-            runs->pos_len = 0;
-        }
-        runs->pos_len++;
+        run_count(positions, pos_run, ((axis * 2 * NCH) + 2 * c + negative) * POS_BINS + where);
         const int k = CK[c], r = k / 2, D = CD[c];
         __global const ushort *S = sat + pos_mod(t - D, SAT_SLOTS) * SAT_SIZE;
         const int step = negative ? -k : k;
@@ -89,12 +91,6 @@ inline void bin_detections(__global int *stats, __global int *hist, __global con
         const int gx = box_at(S, xr, by, r) - box_at(S, xl, by, r);
         const int gy = box_at(S, bx, yd, r) - box_at(S, bx, yu, r);
         if (gx == 0 && gy == 0) continue;
-        const int bin = (axis * 2 * NCH + 2 * c + negative) * NBINS + orientation_bin(gx, gy);
-        if (bin != runs->hist_bin) {
-            if (runs->hist_len) ATOMIC_ADD(hist + runs->hist_bin, runs->hist_len);
-            runs->hist_bin = bin;
-            runs->hist_len = 0;
-        }
-        runs->hist_len++;
+        run_count(hist, hist_run, (axis * 2 * NCH + 2 * c + negative) * NBINS + orientation_bin(gx, gy));
     }
 }

@@ -119,8 +119,9 @@ def parse_msp_v2(data: bytes):
         i = data.find(b"$X", i)
         if i < 0 or i + 8 > len(data):
             return frames
-        flags, function, size = data[i + 3], int.from_bytes(data[i + 4:i + 6], "little"), \
-            int.from_bytes(data[i + 6:i + 8], "little")
+        # header: '$', 'X', direction, flags (CRC'd, not needed here), function, size
+        function = int.from_bytes(data[i + 4:i + 6], "little")
+        size = int.from_bytes(data[i + 6:i + 8], "little")
         end = i + 8 + size
         if end >= len(data):
             return frames

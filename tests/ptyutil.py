@@ -116,3 +116,15 @@ class FrameFeeder:
             self.link.service(now)
             if peer is not None and sink is not None:
                 sink.extend(peer.read())
+
+
+def fly_and_close(link, peer: PtyPeer, count: int, *, fps: float, **frame_kw) -> bytes:
+    """Feed ``count`` frames to ``link`` (see :meth:`FrameFeeder.frames`), close it, and
+    return every byte the peer received, including what was flushed on close."""
+    sink = bytearray()
+    try:
+        FrameFeeder(link, fps=fps).frames(count, peer=peer, sink=sink, **frame_kw)
+    finally:
+        link.close()
+    sink.extend(peer.read())
+    return bytes(sink)

@@ -8,7 +8,7 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
 sys.path.insert(0, os.path.dirname(__file__))
-from ptyutil import FrameFeeder, PtyPeer, host_us  # noqa: E402
+from ptyutil import FrameFeeder, PtyPeer, fly_and_close, host_us  # noqa: E402
 
 from firmware_py.links import FlowSample, LinkConfig, open_link  # noqa: E402
 from firmware_py.links.mavlink import MavlinkLink, encode_heartbeat, new_encoder, pack  # noqa: E402
@@ -115,13 +115,7 @@ def make_link_no_port(**kw):
 
 def fly(peer, *, flow_x, flow_y, frames=100, **kw):
     link = make_link(peer, autopilot="both", **kw)
-    sink = bytearray()
-    try:
-        FrameFeeder(link, fps=FPS).frames(frames, flow_x=flow_x, flow_y=flow_y, peer=peer, sink=sink)
-    finally:
-        link.close()
-    sink.extend(peer.read())
-    messages = strict_parse(bytes(sink))
+    messages = strict_parse(fly_and_close(link, peer, frames, fps=FPS, flow_x=flow_x, flow_y=flow_y))
     return link, of_type(messages, "OPTICAL_FLOW"), of_type(messages, "OPTICAL_FLOW_RAD")
 
 
@@ -176,13 +170,9 @@ def test_ground_distance_and_ids(peer):
 
 def test_integration_time_is_real_elapsed_time_and_drops_do_not_spike(peer):
     link = make_link(peer, autopilot="px4", message_rate_hz=50)
-    sink = bytearray()
-    try:
-        # 100 fps with every 7th frame lost: the next frame carries two frames of motion.
-        FrameFeeder(link, fps=FPS).frames(200, flow_y=1.0, skip_every=7, peer=peer, sink=sink)
-    finally:
-        link.close()
-    rad = of_type(strict_parse(bytes(sink)), "OPTICAL_FLOW_RAD")
+    # 100 fps with every 7th frame lost: the next frame carries two frames of motion.
+    rad = of_type(strict_parse(fly_and_close(link, peer, 200, fps=FPS, flow_y=1.0, skip_every=7)),
+                  "OPTICAL_FLOW_RAD")
     assert len(rad) > 50
     for prev, cur in zip(rad, rad[1:]):
         # time_usec is the capture time of the newest frame: consecutive differences are

@@ -8,7 +8,7 @@ import sys
 import pytest
 
 sys.path.insert(0, os.path.dirname(__file__))
-from ptyutil import FrameFeeder, PtyPeer, host_us  # noqa: E402
+from ptyutil import FrameFeeder, PtyPeer, fly_and_close, host_us  # noqa: E402
 
 from firmware_py.links import LinkConfig, open_link  # noqa: E402
 from firmware_py.links.msp import MspLink, encode_optic_flow  # noqa: E402
@@ -91,13 +91,7 @@ def run_inav(peer, *, flow_x, flow_y, frames=200, focal_length_px=400.0, **kw):
     link = open_link(LinkConfig(port=peer.path, baud=115200, autopilot="inav", focal_length_px=focal_length_px,
                                 **kw))
     assert isinstance(link, MspLink)
-    sink = bytearray()
-    try:
-        FrameFeeder(link, fps=FPS).frames(frames, flow_x=flow_x, flow_y=flow_y, peer=peer, sink=sink)
-    finally:
-        link.close()
-    sink.extend(peer.read())
-    return link, optic_flow(bytes(sink))
+    return link, optic_flow(fly_and_close(link, peer, frames, fps=FPS, flow_x=flow_x, flow_y=flow_y))
 
 
 def test_rate_default_50hz_from_capture_time(peer):
