@@ -6,7 +6,8 @@ the same pre-rendered frames of a camera flight, alternating method by method in
 median ms/frame over the blocks and ratios measured in the same run:
 
 * ``opencl``   — ``FlowEstimator.update`` on the OpenCL backend: frame upload, all kernels,
-  result download to the host (the paper's 7-scale model);
+  result download to the host (the paper's 7-scale model; ``--model extended`` the
+  daemon's default model);
 * ``opencl+summary`` — the same plus :func:`emdflow.summarize` (what the daemon pays);
 * ``numpy``    — the vectorised reference (fewer, shorter blocks: it is slow);
 * ``dis``      — OpenCV's DIS optical flow, ULTRAFAST preset, between consecutive frames;
@@ -27,6 +28,8 @@ import sys
 import time
 
 import numpy as np
+
+from .params import MODELS
 
 __all__ = ["main", "profile_stages", "run_benchmark"]
 
@@ -191,7 +194,11 @@ def main(argv=None) -> int:
     parser.add_argument("--rounds", type=int, default=7, help="alternating rounds (default: %(default)s)")
     parser.add_argument("--plot", metavar="PNG", help="also write a bar chart to this PNG file")
     parser.add_argument("--json", metavar="FILE", help="also write the results as JSON")
-    parser.add_argument("--delays", default="1", help="temporal delays of the engine, e.g. 1,2,4 (default: 1 = the paper)")
+    parser.add_argument("--model", default="paper", choices=tuple(MODELS),
+                        help="detector model (default: %(default)s; extended = the daemon's default: "
+                             "delays 1, 2, 4 at scale 1 and the adaptive threshold)")
+    parser.add_argument("--delays", default=None,
+                        help="temporal delays of the engine instead, e.g. 1,2,4 (fixed threshold)")
     parser.add_argument("--stages", action="store_true",
                         help="instead: device time per command of a frame (OpenCL profiling events)")
     args = parser.parse_args(argv)
@@ -199,9 +206,11 @@ def main(argv=None) -> int:
         sizes = [tuple(int(v) for v in s.lower().split("x")) for s in args.sizes.split(",")]
     except ValueError:
         parser.error(f"--sizes {args.sizes!r}: expected e.g. 320x240,640x480")
-    delays = tuple(int(d) for d in args.delays.split(","))
-    kwargs = {"delays": delays} if delays != (1,) else None
-    print(f"# emdflow bench — {_environment()}", flush=True)
+    kwargs = dict(MODELS[args.model])
+    if args.delays is not None:
+        kwargs["delays"] = tuple(int(d) for d in args.delays.split(","))
+    print(f"# emdflow bench — {_environment()}; model: {args.model}"
+          + (f", delays {kwargs['delays']}" if args.delays is not None else ""), flush=True)
     if args.stages:
         for width, height in sizes:
             stages = profile_stages(width, height, backend_kwargs=kwargs)

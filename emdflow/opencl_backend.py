@@ -12,7 +12,9 @@ disk, ``POCL_CACHE_DIR``).
 
 from __future__ import annotations
 
+import math
 import os
+import struct
 import threading
 from importlib import resources
 from pathlib import Path
@@ -97,6 +99,19 @@ def _pick_device(device):
     raise ValueError(f"OpenCL device {choice!r} not found among: {names}")
 
 
+def _int_arg_setter(kernel):
+    """``set(index, value)`` for a kernel's per-frame int arguments.
+
+    pyopencl's ``Kernel.set_arg`` dispatches on the argument's type in Python (~8 us per
+    call here, five calls a frame); its raw-bytes setter takes ~0.2 us. Older or other
+    pyopencl builds without it fall back to ``set_arg``."""
+    raw = getattr(kernel, "_set_arg_buf", None)
+    if raw is None:
+        return lambda index, value: kernel.set_arg(index, np.int32(value))
+    pack = struct.Struct("<i").pack
+    return lambda index, value: raw(index, pack(value))
+
+
 def _ceil(a: int, b: int) -> int:
     return -(-a // b)
 
@@ -117,6 +132,7 @@ class _Layout:
         self.PSTRIDE = self.PPAD + self.NW * 32 + 32
         self.SSTRIDE = self.SPAD + self.NW * 32 + 32
         self.SAT_SLOTS = params.max_delay + 1
+        self.P_SIZE = self.PSTRIDE * height  # one slot of the prefiltered image
         # difference table S_t - S_(t-1) for the delay-1 channels at scales <= 11
         self.DSAT = int(any(d == 1 and k <= 11 for k, d in params.channels))
         chans = params.channels
@@ -126,6 +142,7 @@ class _Layout:
         self.rings = [2 * d + 1 for _, d in chans]
         self.bases = [int(b) for b in np.cumsum([0] + self.rings[:-1])]
         self.plane_slots = int(sum(self.rings))
+        self.t_period = math.lcm(self.SAT_SLOTS, *self.rings)
         self.plane_words = (height + 2 * self.PADR) * self.NWP
         self.sat_elems = (height + 1) * self.SSTRIDE
         self.hist_size = 2 * 2 * len(chans) * ORIENTATION_BINS
@@ -146,6 +163,7 @@ class _Layout:
         self.defines = {
             "W": width, "H": height, "NW": self.NW, "NWP": self.NWP, "PADR": self.PADR,
             "OW": self.OW, "HSTRIDE": self.HSTRIDE, "PSTRIDE": self.PSTRIDE, "PPAD": self.PPAD,
+            "P_SIZE": self.P_SIZE,
             "SSTRIDE": self.SSTRIDE, "SPAD": self.SPAD, "SAT_SLOTS": self.SAT_SLOTS, "DSAT": self.DSAT,
             "NCH": len(chans),
             "CH_K": join(k for k, _ in chans), "CH_D": join(d for _, d in chans),
@@ -272,7 +290,7 @@ class OpenCLEngine:
         tail = 64  # vector loads of the last row may run past its end
         self.frame_buf = cl.Buffer(ctx, mf.READ_ONLY, width * height + tail)
         self.h_buf = cl.Buffer(ctx, mf.READ_WRITE, lay.HSTRIDE * height + tail)
-        self.p_buf = cl.Buffer(ctx, mf.READ_WRITE, lay.PSTRIDE * height + tail)
+        self.p_buf = cl.Buffer(ctx, mf.READ_WRITE, lay.P_SIZE * lay.SAT_SLOTS + tail)
         self.sat_buf = cl.Buffer(ctx, mf.READ_WRITE, 2 * lay.sat_elems * lay.SAT_SLOTS + tail)
         self.dsat_buf = cl.Buffer(ctx, mf.READ_WRITE, (2 * lay.sat_elems if lay.DSAT else 0) + tail)
         self.planes = cl.Buffer(ctx, mf.READ_WRITE, 4 * 2 * lay.plane_slots * lay.plane_words)
@@ -304,6 +322,8 @@ class OpenCLEngine:
         self._k_states.set_args(self.sat_buf, self.dsat_buf, self.planes, self.p_buf, self.frame_buf, self.result,
                                 zero, zero)
         self._k_evd.set_args(self.planes, self.result, self.debug_buf, self.sat_buf, zero)
+        self._set_prefilter, self._set_integral, self._set_states, self._set_evd = (
+            _int_arg_setter(k) for k in (self._k_prefilter, self._k_integral, self._k_states, self._k_evd))
         #: set to a list to collect each frame's command events (needs a profiling queue)
         self.trace = None
         self.reset()
@@ -326,14 +346,17 @@ class OpenCLEngine:
         ``codes.decode()`` gives ``(u_code, v_code)`` like the reference.
         """
         cl, q, lay = self._cl, self.queue, self.layout
-        t = np.int32(self.t)
-        slot = np.int32(self.t % lay.SAT_SLOTS)
+        # the kernels use t modulo the ring lengths and the SAT slots, and t < D: a device
+        # t that wraps with period P (a multiple of them all, > every D) never overflows
+        P = lay.t_period
+        t = self.t if self.t < P else P + self.t % P
+        slot = self.t % lay.SAT_SLOTS
         launch = cl.enqueue_nd_range_kernel
-        self._k_prefilter.set_arg(5, slot)
-        self._k_integral.set_arg(2, slot)
-        self._k_states.set_arg(6, t)
-        self._k_states.set_arg(7, np.int32(self.theta_q))
-        self._k_evd.set_arg(4, t)
+        self._set_prefilter(5, slot)
+        self._set_integral(2, slot)
+        self._set_states(6, t)
+        self._set_states(7, int(self.theta_q))
+        self._set_evd(4, t)
         host = np.empty(lay.result_bytes, np.uint8)
         events = (
             cl.enqueue_copy(q, self.frame_buf, np.ascontiguousarray(frame), is_blocking=False),

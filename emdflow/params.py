@@ -28,7 +28,16 @@ import math
 
 import numpy as np
 
-__all__ = ["EngineParams", "gaussian_weights", "ORIENTATION_BINS"]
+__all__ = ["EngineParams", "gaussian_weights", "ORIENTATION_BINS", "MODELS"]
+
+#: Named detector models: the ``FlowEstimator`` keywords of each. ``"paper"`` is the
+#: published model (seven one-frame channels, fixed threshold); ``"extended"`` adds the
+#: delays 2 and 4 at scale 1 (1/2 and 1/4 px/frame: hovering drift) and the contrast-
+#: adaptive threshold. The daemon, the benchmark and the calibration tools all use this.
+MODELS = {
+    "paper": {},
+    "extended": {"delays": (1, 2, 4), "delay_scales": (1,), "threshold_mode": "adaptive"},
+}
 
 #: Orientation bins over 180° used to summarise the gradient direction of detections.
 ORIENTATION_BINS = 64

@@ -13,6 +13,8 @@ import tomllib
 import typing
 from pathlib import Path
 
+from emdflow.params import MODELS
+
 __all__ = ["Config", "SourceConfig", "OpticsConfig", "EngineConfig", "LinkConfigSection",
            "DaemonConfig", "ConfigError", "load_config", "SECTIONS"]
 
@@ -60,17 +62,14 @@ class EngineConfig:
     reset_after_gap_s: float = _opt(0.5, minimum=0.01, maximum=60.0, doc="reset after this gap, s")
     # "extended" by default: a flying vehicle needs the slow drift (hover) and contrast
     # changes the paper's model is blind to; "paper" is the published model unchanged.
-    model: str = _opt("extended", choices=("paper", "extended"), doc="detector model")
+    model: str = _opt("extended", choices=tuple(MODELS), doc="detector model")
     threshold: float = _opt(5.0, minimum=0.5, maximum=100.0, doc="ternary threshold, gray levels")
 
     def estimator_options(self) -> dict:
         """Keyword arguments of ``emdflow.FlowEstimator`` for this section."""
-        options = {"threshold": self.threshold}
-        if self.model == "extended":
-            # temporal delays see 1/2 and 1/4 px/frame (hovering drift); the threshold
-            # follows scene contrast and exposure
-            options.update(delays=(1, 2, 4), delay_scales=(1,), threshold_mode="adaptive")
-        return options
+        # extended: temporal delays see 1/2 and 1/4 px/frame (hovering drift); the
+        # threshold follows scene contrast and exposure (emdflow.params.MODELS)
+        return {"threshold": self.threshold, **MODELS[self.model]}
 
 
 @dataclasses.dataclass

@@ -6,6 +6,7 @@
  *                   detectors never test bounds
  *   HSTRIDE         row stride of the horizontal-pass buffer (whole 16-px strips)
  *   PSTRIDE, PPAD   row stride and left padding of the prefiltered image P (uchar)
+ *   P_SIZE          one slot of P (PSTRIDE * H); P keeps SAT_SLOTS frames like the tables
  *   SSTRIDE, SPAD   row stride and left padding of the summed-area tables (ushort, H + 1 rows)
  *   SAT_SLOTS       summed-area tables kept (max delay + 1)
  *   DSAT            1 if some channel has D = 1 and k <= 11: integral_rows also writes the

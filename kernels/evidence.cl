@@ -6,8 +6,6 @@
 
 /* |table| <= 2^14 and |g| < 2^16 (box sums of an 8-bit image, k <= 15), so the cross
  * products below fit in 32 bits */
-__constant int OC[NBINS - 1] = { ORIENT_C };
-__constant int OS[NBINS - 1] = { ORIENT_S };
 
 __attribute__((always_inline)) inline int box_at(__global const ushort *S, int cx, int cy, int r)
 {
@@ -17,29 +15,36 @@ __attribute__((always_inline)) inline int box_at(__global const ushort *S, int c
     return (ushort)(bot[w] - top[w] - bot[0] + top[0]);  /* exact below 2^16 */
 }
 
-/* 1 when the gradient lies at or beyond boundary b (the exact integer test) */
-#define BEYOND(b) (OC[(b)] * gy - OS[(b)] * gx >= 0)
-
 /* The bin is the number of boundaries b with OC[b] gy - OS[b] gx >= 0 (gradient folded
  * into the upper half-plane). The boundaries are sorted by angle, so the test is true for
- * b < bin and false after: a branch-free binary search finds the exact count in
- * log2(NBINS) steps (a float arctangent guess cost twice as much on PoCL). */
-#if (NBINS & (NBINS - 1)) != 0
-#error "the orientation search needs a power-of-two bin count"
+ * b < bin and false after. Two levels of eight independent tests in int8 vectors: the
+ * boundaries 7, 15, ..., 55 give the bin's group of eight, the seven boundaries inside it
+ * the rest. A binary search was a chain of six dependent load-multiply-compare steps. */
+#if NBINS != 64
+#error "the orientation search is written for 64 bins"
 #endif
+/* the boundary tables padded to 64 entries (the last lane of every group is masked) */
+__constant int OC[NBINS] = { ORIENT_C };
+__constant int OS[NBINS] = { ORIENT_S };
+
+inline int count_beyond(int8 c, int8 s, int gx, int gy)
+{
+    /* lanes 0..6: -1 where the gradient lies at or beyond that boundary; lane 7 unused */
+    const int8 beyond = (c * gy - s * gx >= 0) & (int8)(-1, -1, -1, -1, -1, -1, -1, 0);
+    const int4 h = beyond.lo + beyond.hi;
+    const int2 q = h.lo + h.hi;
+    return -(q.x + q.y);
+}
 
 __attribute__((always_inline)) inline int orientation_bin(int gx, int gy)
 {
     const int flip = -((gy < 0) | ((gy == 0) & (gx < 0)));
     gx = (gx ^ flip) - flip;
     gy = (gy ^ flip) - flip;
-    int n = 0;
-#pragma unroll
-    for (int step = NBINS / 2; step >= 1; step >>= 1) {
-        const int b = n + step - 1;
-        n += (b < NBINS - 1 && BEYOND(b)) ? step : 0;
-    }
-    return n;
+    const int8 c1 = (int8)(OC[7], OC[15], OC[23], OC[31], OC[39], OC[47], OC[55], 0);
+    const int8 s1 = (int8)(OS[7], OS[15], OS[23], OS[31], OS[39], OS[47], OS[55], 0);
+    const int group = count_beyond(c1, s1, gx, gy);
+    return 8 * group + count_beyond(vload8(group, OC), vload8(group, OS), gx, gy);
 }
 
 /* Run-length counting: neighbouring detections along an edge often fall in the same bin,

@@ -72,7 +72,7 @@ __kernel void prefilter_columns(__global const uchar *frame, __global uchar *hbu
         }
         const ushort16 p = acc >> 8;
         /* lanes beyond W fall in padding that nothing reads unmasked */
-        STORE_UC16(P + y * PSTRIDE + PPAD + x0, convert_uchar16(p));
+        STORE_UC16(P + slot * P_SIZE + y * PSTRIDE + PPAD + x0, convert_uchar16(p));
         colsum += p;
         STORE_US16(S + (y + 1) * SSTRIDE, colsum);
     }

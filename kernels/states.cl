@@ -6,6 +6,8 @@
  *   for D = 1 and k <= 11, now - then is one box sum of the difference table dsat
  *   (= S_t - S_(t-1), see integral_rows): |now - then| <= 121 * 255 < 2^15, so the
  *   wrapped box sum read as int16 is exact (4 loads from one table instead of 8 from two);
+ *   for k = 1 the receptor is the prefiltered pixel itself: P_t - P_(t-D) from the ring
+ *   of prefiltered frames (two byte-vector loads; the slow channels of the extended model);
  * stored as two bit planes (positive, negative) in the channel's ring slot.
  * Also counts nonzero states per channel, textured pixels and saturated pixels. */
 
@@ -26,6 +28,7 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
     if (y >= H) return;  /* the global size is padded to whole work-groups */
     __global int *stats = (__global int *)(result + STATS_OFFSET);
     __global const ushort *S_now = sat + (t % SAT_SLOTS) * SAT_SIZE;
+    __global const uchar *P_now = P + (t % SAT_SLOTS) * P_SIZE;
 
     /* unrolled: k, r and the load offsets become constants */
     #pragma unroll
@@ -40,6 +43,7 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
             continue;
         }
         __global const ushort *S_then = sat + pos_mod(t - D, SAT_SLOTS) * SAT_SIZE;
+        __global const uchar *P_then = P + pos_mod(t - D, SAT_SLOTS) * P_SIZE;
         /* words from i_edge on hold pixels past W - 1 - r; word 0 holds x < r */
         const int i_edge = (W - r) / 32;
         int changed = 0, brightening = 0;
@@ -50,7 +54,12 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
                 /* |now - then| <= 121 * 255 < 2^15: the int16 difference is exact */
                 const short Ts = T > 32767 ? 32767 : (short)T;
                 short16 d0, d1;
-                if (D == 1) {
+                if (k == 1) {
+                    /* a 1x1 receptor is the prefiltered pixel itself: two byte loads */
+                    __global const uchar *pn = P_now + y * PSTRIDE + PPAD + x, *pt = P_then + y * PSTRIDE + PPAD + x;
+                    d0 = convert_short16(LOAD_UC16(pn)) - convert_short16(LOAD_UC16(pt));
+                    d1 = convert_short16(LOAD_UC16(pn + 16)) - convert_short16(LOAD_UC16(pt + 16));
+                } else if (D == 1) {
                     d0 = as_short16(box16(dsat, y, x, r));
                     d1 = as_short16(box16(dsat, y, x + 16, r));
                 } else {
@@ -92,7 +101,7 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
         const short tex_t = (short)((2 * theta_q) >> 8);
         int textured = 0, saturated = 0, contrast = 0;
         if (y >= 2 && y <= H - 2) {
-            __global const uchar *row = P + y * PSTRIDE + PPAD;
+            __global const uchar *row = P_now + y * PSTRIDE + PPAD;
             short16 tex_n = (short16)(0);   /* lane counts: at most W / 16 */
             int8 con = (int8)(0);
             for (int x = 0; x < W; x += 16) {

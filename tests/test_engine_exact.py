@@ -118,3 +118,23 @@ def test_full_size_flight_and_reset():
             assert np.array_equal(x, y), f"after reset, frame {t} differs"
         if t < 3:
             assert not a[0].any() and not a[1].any(), "history must be empty after reset"
+
+
+def test_long_run_past_the_device_time_period():
+    """The kernels get t modulo a period of all ring lengths (so t never overflows int32):
+    past that period (45 frames for delays 1, 2, 4) the OpenCL engine still equals the
+    reference."""
+    width, height = 40, 33
+    params = EngineParams(delays=(1, 2, 4))
+    period = opencl_backend.OpenCLEngine(width, height, params).layout.t_period
+    assert period == 45
+    flight = CameraFlight("brick", width=width, height=height, flow=(0.7, -0.4), noise_sigma=2, seed=9)
+    ref = ReferenceEngine(width, height, params)
+    ocl = opencl_backend.OpenCLEngine(width, height, params)
+    fired = 0
+    for t in range(period + 12):
+        a, b = ref.step(flight.render(t)), ocl.step(flight.render(t))
+        for x, y in zip(a, b):
+            assert np.array_equal(x, y), f"frame {t} differs"
+        fired += int(np.count_nonzero(a[0]))
+    assert fired > 0

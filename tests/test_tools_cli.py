@@ -288,6 +288,25 @@ def test_bench_stages_times_every_command_of_a_frame(capsys):
     assert line.startswith("64x48") and all(name in line for name in OpenCLEngine.STAGES)
 
 
+def test_bench_model_option_runs_the_daemons_model(monkeypatch, capsys):
+    """``--model extended`` benchmarks the daemon's default model (delays and adaptive
+    threshold from ``emdflow.params.MODELS``); ``--delays`` overrides the delays alone."""
+    from emdflow import bench
+    from emdflow.params import MODELS
+
+    seen = []
+    real = bench.profile_stages
+    monkeypatch.setattr(bench, "profile_stages",
+                        lambda w, h, backend_kwargs=None: seen.append(backend_kwargs) or real(w, h, frames=5,
+                                                                                             backend_kwargs=backend_kwargs))
+    pytest.importorskip("pyopencl")
+    assert bench.main(["--stages", "--sizes", "48x40", "--model", "extended"]) == 0
+    assert "model: extended" in capsys.readouterr().out
+    assert seen[-1] == MODELS["extended"] and seen[-1]["threshold_mode"] == "adaptive"
+    assert bench.main(["--stages", "--sizes", "48x40", "--delays", "1,3"]) == 0
+    assert seen[-1] == {"delays": (1, 3)}
+
+
 # ---------------------------------------------------------------------------------- errors
 
 

@@ -76,6 +76,8 @@ from pathlib import Path
 
 import numpy as np
 
+from emdflow.params import MODELS as _MODELS
+
 CALIBRATION_TEXTURES = ("moon", "coffee", "astronaut", "rocket")
 
 
@@ -92,10 +94,7 @@ def inside_start(rng, size, view, shift):
 
 #: Detector models the summary is calibrated for: keyword options of ``FlowEstimator``
 #: (``extended`` is the daemon's ``[engine] model = "extended"``).
-MODELS = {
-    "paper": {},
-    "extended": {"delays": (1, 2, 4), "delay_scales": (1,), "threshold_mode": "adaptive"},
-}
+MODELS = _MODELS
 #: Per model, what ``collect`` draws for a flight: speed range (log-uniform, px/frame),
 #: contrast range (log-uniform), the share of flights with an exposure drift and its
 #: largest size (uniform in ±drift across the whole flight), and the u grid offset of the
