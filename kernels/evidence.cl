@@ -4,9 +4,6 @@
  * by (axis, signed channel, orientation of the gradient of the receptor image R_k at the
  * middle receptor B at t - D) and by position. */
 
-/* |table| <= 2^14 and |g| < 2^16 (box sums of an 8-bit image, k <= 15), so the cross
- * products below fit in 32 bits */
-
 __attribute__((always_inline)) inline int box_at(__global const ushort *S, int cx, int cy, int r)
 {
     __global const ushort *top = S + (cy - r) * SSTRIDE + SPAD + cx - r;
@@ -23,9 +20,12 @@ __attribute__((always_inline)) inline int box_at(__global const ushort *S, int c
 #if NBINS != 64
 #error "the orientation search is written for 64 bins"
 #endif
-/* the boundary tables padded to 64 entries (the last lane of every group is masked) */
-__constant int OC[NBINS] = { ORIENT_C };
-__constant int OS[NBINS] = { ORIENT_S };
+/* the boundary tables padded to 64 entries (the last lane of every group is masked),
+ * aligned so a group of eight is one vector load (vload8 is a library call on PoCL);
+ * |table| <= 2^14 and |g| < 2^16 (box sums of an 8-bit image, k <= 15), so the cross
+ * products fit in 32 bits */
+__constant int OC[NBINS] __attribute__((aligned(32))) = { ORIENT_C };
+__constant int OS[NBINS] __attribute__((aligned(32))) = { ORIENT_S };
 
 inline int count_beyond(int8 c, int8 s, int gx, int gy)
 {
@@ -44,7 +44,8 @@ __attribute__((always_inline)) inline int orientation_bin(int gx, int gy)
     const int8 c1 = (int8)(OC[7], OC[15], OC[23], OC[31], OC[39], OC[47], OC[55], 0);
     const int8 s1 = (int8)(OS[7], OS[15], OS[23], OS[31], OS[39], OS[47], OS[55], 0);
     const int group = count_beyond(c1, s1, gx, gy);
-    return 8 * group + count_beyond(vload8(group, OC), vload8(group, OS), gx, gy);
+    return 8 * group + count_beyond(*(__constant const int8 *)(OC + 8 * group),
+                                      *(__constant const int8 *)(OS + 8 * group), gx, gy);
 }
 
 /* Run-length counting: neighbouring detections along an edge often fall in the same bin,
