@@ -131,10 +131,15 @@ class _Layout:
         self.HSTRIDE = _ceil(width, 16) * 16
         self.PSTRIDE = self.PPAD + self.NW * 32 + 32
         self.SSTRIDE = self.SPAD + self.NW * 32 + 32
-        self.SAT_SLOTS = params.max_delay + 1
+        # Scale-1 receptors are the prefiltered pixels: their states (and the evidence's
+        # gradients) come from a ring of prefiltered frames P, so the larger summed-area
+        # tables are kept only as far back as the delays of the larger scales (two tables
+        # for the extended model instead of five)
+        self.P_SLOTS = params.max_delay + 1
         self.P_SIZE = self.PSTRIDE * height  # one slot of the prefiltered image
-        # difference table S_t - S_(t-1) for the delay-1 channels at scales <= 11
-        self.DSAT = int(any(d == 1 and k <= 11 for k, d in params.channels))
+        self.SAT_SLOTS = 1 + max((d for k, d in params.channels if k > 1), default=0)
+        # difference table S_t - S_(t-1) for the delay-1 channels at scales 3..11
+        self.DSAT = int(any(d == 1 and 1 < k <= 11 for k, d in params.channels))
         chans = params.channels
         if len(chans) > 15:
             raise ValueError(f"{len(chans)} channels: at most 15 (scales x delays) are supported")
@@ -142,7 +147,7 @@ class _Layout:
         self.rings = [2 * d + 1 for _, d in chans]
         self.bases = [int(b) for b in np.cumsum([0] + self.rings[:-1])]
         self.plane_slots = int(sum(self.rings))
-        self.t_period = math.lcm(self.SAT_SLOTS, *self.rings)
+        self.t_period = math.lcm(self.SAT_SLOTS, self.P_SLOTS, *self.rings)
         self.plane_words = (height + 2 * self.PADR) * self.NWP
         self.sat_elems = (height + 1) * self.SSTRIDE
         self.hist_size = 2 * 2 * len(chans) * ORIENTATION_BINS
@@ -163,7 +168,7 @@ class _Layout:
         self.defines = {
             "W": width, "H": height, "NW": self.NW, "NWP": self.NWP, "PADR": self.PADR,
             "OW": self.OW, "HSTRIDE": self.HSTRIDE, "PSTRIDE": self.PSTRIDE, "PPAD": self.PPAD,
-            "P_SIZE": self.P_SIZE,
+            "P_SIZE": self.P_SIZE, "P_SLOTS": self.P_SLOTS,
             "SSTRIDE": self.SSTRIDE, "SPAD": self.SPAD, "SAT_SLOTS": self.SAT_SLOTS, "DSAT": self.DSAT,
             "NCH": len(chans),
             "CH_K": join(k for k, _ in chans), "CH_D": join(d for _, d in chans),
@@ -290,7 +295,7 @@ class OpenCLEngine:
         tail = 64  # vector loads of the last row may run past its end
         self.frame_buf = cl.Buffer(ctx, mf.READ_ONLY, width * height + tail)
         self.h_buf = cl.Buffer(ctx, mf.READ_WRITE, lay.HSTRIDE * height + tail)
-        self.p_buf = cl.Buffer(ctx, mf.READ_WRITE, lay.P_SIZE * lay.SAT_SLOTS + tail)
+        self.p_buf = cl.Buffer(ctx, mf.READ_WRITE, lay.P_SIZE * lay.P_SLOTS + tail)
         self.sat_buf = cl.Buffer(ctx, mf.READ_WRITE, 2 * lay.sat_elems * lay.SAT_SLOTS + tail)
         self.dsat_buf = cl.Buffer(ctx, mf.READ_WRITE, (2 * lay.sat_elems if lay.DSAT else 0) + tail)
         self.planes = cl.Buffer(ctx, mf.READ_WRITE, 4 * 2 * lay.plane_slots * lay.plane_words)
@@ -317,11 +322,11 @@ class OpenCLEngine:
         # buffer arguments are set once; per frame only the scalars change (pyopencl's
         # Kernel.__call__ would set every argument again: ~10 us per launch)
         zero = np.int32(0)
-        self._k_prefilter.set_args(self.frame_buf, self.h_buf, self.p_buf, self.sat_buf, self.result, zero)
+        self._k_prefilter.set_args(self.frame_buf, self.h_buf, self.p_buf, self.sat_buf, self.result, zero, zero)
         self._k_integral.set_args(self.sat_buf, self.dsat_buf, zero)
         self._k_states.set_args(self.sat_buf, self.dsat_buf, self.planes, self.p_buf, self.frame_buf, self.result,
                                 zero, zero)
-        self._k_evd.set_args(self.planes, self.result, self.debug_buf, self.sat_buf, zero)
+        self._k_evd.set_args(self.planes, self.result, self.debug_buf, self.sat_buf, self.p_buf, zero)
         self._set_prefilter, self._set_integral, self._set_states, self._set_evd = (
             _int_arg_setter(k) for k in (self._k_prefilter, self._k_integral, self._k_states, self._k_evd))
         #: set to a list to collect each frame's command events (needs a profiling queue)
@@ -351,12 +356,14 @@ class OpenCLEngine:
         P = lay.t_period
         t = self.t if self.t < P else P + self.t % P
         slot = self.t % lay.SAT_SLOTS
+        p_slot = self.t % lay.P_SLOTS
         launch = cl.enqueue_nd_range_kernel
         self._set_prefilter(5, slot)
+        self._set_prefilter(6, p_slot)
         self._set_integral(2, slot)
         self._set_states(6, t)
         self._set_states(7, int(self.theta_q))
-        self._set_evd(4, t)
+        self._set_evd(5, t)
         host = np.empty(lay.result_bytes, np.uint8)
         events = (
             cl.enqueue_copy(q, self.frame_buf, np.ascontiguousarray(frame), is_blocking=False),

@@ -6,10 +6,10 @@
  *                   detectors never test bounds
  *   HSTRIDE         row stride of the horizontal-pass buffer (whole 16-px strips)
  *   PSTRIDE, PPAD   row stride and left padding of the prefiltered image P (uchar)
- *   P_SIZE          one slot of P (PSTRIDE * H); P keeps SAT_SLOTS frames like the tables
+ *   P_SIZE, P_SLOTS one slot of P (PSTRIDE * H) and the frames of P kept (max delay + 1)
  *   SSTRIDE, SPAD   row stride and left padding of the summed-area tables (ushort, H + 1 rows)
- *   SAT_SLOTS       summed-area tables kept (max delay + 1)
- *   DSAT            1 if some channel has D = 1 and k <= 11: integral_rows also writes the
+ *   SAT_SLOTS       summed-area tables kept (max delay of the scales > 1, plus 1)
+ *   DSAT            1 if some channel has D = 1 and 1 < k <= 11: integral_rows also writes the
  *                   difference table S_t - S_(t-1) that ternary_states reads for them
  *   NCH             channels (scale, delay), sorted by increasing speed
  *   CH_K, CH_D, CH_RING, CH_BASE   per-channel scale, delay, state ring length (2D + 1)

@@ -70,8 +70,11 @@ __attribute__((always_inline)) inline void run_flush(__global int *counts, bin_r
 }
 
 /* Bin the detections of word i of row y (bit planes b0..b3 = channel index c + 1, bs =
- * sign) of one axis into the position and orientation histograms. */
-inline void bin_detections(__global int *positions, __global int *hist, __global const ushort *sat, int t,
+ * sign) of one axis into the position and orientation histograms. The gradient of a
+ * scale-1 receptor image is the prefiltered image's own (from the ring of P; the tables
+ * keep only the frames the larger scales need). */
+inline void bin_detections(__global int *positions, __global int *hist, __global const ushort *sat,
+                           __global const uchar *P, int t,
                            int axis, int y, int i, uint b0, uint b1, uint b2, uint b3, uint bs,
                            bin_run *pos_run, bin_run *hist_run)
 {
@@ -86,7 +89,6 @@ inline void bin_detections(__global int *positions, __global int *hist, __global
         const int where = axis ? y * POS_BINS / H : x * POS_BINS / W;
         run_count(positions, pos_run, ((axis * 2 * NCH) + 2 * c + negative) * POS_BINS + where);
         const int k = CK[c], r = k / 2, D = CD[c];
-        __global const ushort *S = sat + pos_mod(t - D, SAT_SLOTS) * SAT_SIZE;
         const int step = negative ? -k : k;
         const int bx = axis ? x : x + step;
         const int by = axis ? y + step : y;
@@ -94,8 +96,17 @@ inline void bin_detections(__global int *positions, __global int *hist, __global
         const int xl = bx - 1 > r ? bx - 1 : r;
         const int yd = by + 1 < H - 1 - r ? by + 1 : H - 1 - r;
         const int yu = by - 1 > r ? by - 1 : r;
-        const int gx = box_at(S, xr, by, r) - box_at(S, xl, by, r);
-        const int gy = box_at(S, bx, yd, r) - box_at(S, bx, yu, r);
+        int gx, gy;
+        if (k == 1) {
+            /* a 1x1 box is the pixel: the same values the table would give */
+            __global const uchar *R = P + pos_mod(t - D, P_SLOTS) * P_SIZE + PPAD;
+            gx = (int)R[by * PSTRIDE + xr] - (int)R[by * PSTRIDE + xl];
+            gy = (int)R[yd * PSTRIDE + bx] - (int)R[yu * PSTRIDE + bx];
+        } else {
+            __global const ushort *S = sat + pos_mod(t - D, SAT_SLOTS) * SAT_SIZE;
+            gx = box_at(S, xr, by, r) - box_at(S, xl, by, r);
+            gy = box_at(S, bx, yd, r) - box_at(S, bx, yu, r);
+        }
         if (gx == 0 && gy == 0) continue;
         run_count(hist, hist_run, (axis * 2 * NCH + 2 * c + negative) * NBINS + orientation_bin(gx, gy));
     }

@@ -39,7 +39,8 @@ inline ushort16 horizontal16(__global const uchar *row, int x0)
 }
 
 __kernel void prefilter_columns(__global const uchar *frame, __global uchar *hbuf,
-                                __global uchar *P, __global ushort *sat, __global char *result, int slot)
+                                __global uchar *P, __global ushort *sat, __global char *result, int slot,
+                                int p_slot)
 {
     /* first, zero this work item's share of the frame's counters and histograms (the later
      * stages add to them atomically): cheaper than a separate fill command */
@@ -72,7 +73,7 @@ __kernel void prefilter_columns(__global const uchar *frame, __global uchar *hbu
         }
         const ushort16 p = acc >> 8;
         /* lanes beyond W fall in padding that nothing reads unmasked */
-        STORE_UC16(P + slot * P_SIZE + y * PSTRIDE + PPAD + x0, convert_uchar16(p));
+        STORE_UC16(P + p_slot * P_SIZE + y * PSTRIDE + PPAD + x0, convert_uchar16(p));
         colsum += p;
         STORE_US16(S + (y + 1) * SSTRIDE, colsum);
     }

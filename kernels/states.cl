@@ -28,7 +28,7 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
     if (y >= H) return;  /* the global size is padded to whole work-groups */
     __global int *stats = (__global int *)(result + STATS_OFFSET);
     __global const ushort *S_now = sat + (t % SAT_SLOTS) * SAT_SIZE;
-    __global const uchar *P_now = P + (t % SAT_SLOTS) * P_SIZE;
+    __global const uchar *P_now = P + (t % P_SLOTS) * P_SIZE;
 
     /* unrolled: k, r and the load offsets become constants */
     #pragma unroll
@@ -42,8 +42,9 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
             for (int i = 0; i < NW; i++) { pos_row[i] = 0; neg_row[i] = 0; }
             continue;
         }
+        /* (S_then only for k > 1: the tables go back as far as those channels' delays) */
         __global const ushort *S_then = sat + pos_mod(t - D, SAT_SLOTS) * SAT_SIZE;
-        __global const uchar *P_then = P + pos_mod(t - D, SAT_SLOTS) * P_SIZE;
+        __global const uchar *P_then = P + pos_mod(t - D, P_SLOTS) * P_SIZE;
         /* words from i_edge on hold pixels past W - 1 - r; word 0 holds x < r */
         const int i_edge = (W - r) / 32;
         int changed = 0, brightening = 0;

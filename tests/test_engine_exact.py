@@ -122,12 +122,12 @@ def test_full_size_flight_and_reset():
 
 def test_long_run_past_the_device_time_period():
     """The kernels get t modulo a period of all ring lengths (so t never overflows int32):
-    past that period (45 frames for delays 1, 2, 4) the OpenCL engine still equals the
-    reference."""
+    past that period (90 frames for delays 1, 2, 4: two tables, five prefiltered frames,
+    rings of 3, 5 and 9) the OpenCL engine still equals the reference."""
     width, height = 40, 33
     params = EngineParams(delays=(1, 2, 4))
     period = opencl_backend.OpenCLEngine(width, height, params).layout.t_period
-    assert period == 45
+    assert period == 90
     flight = CameraFlight("brick", width=width, height=height, flow=(0.7, -0.4), noise_sigma=2, seed=9)
     ref = ReferenceEngine(width, height, params)
     ocl = opencl_backend.OpenCLEngine(width, height, params)
