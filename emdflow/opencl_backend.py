@@ -128,7 +128,6 @@ class _Layout:
         self.NW = _ceil(width, 32)
         self.NWP = _ceil(self.NW, 8) * 8 + 2  # 8-word vectors, a zero word each side
         self.PADR = 2 * max(params.scales)
-        self.HSTRIDE = _ceil(width, 16) * 16
         self.PSTRIDE = self.PPAD + self.NW * 32 + 32
         self.SSTRIDE = self.SPAD + self.NW * 32 + 32
         # Scale-1 receptors are the prefiltered pixels: their states (and the evidence's
@@ -167,7 +166,7 @@ class _Layout:
         join = lambda v: ", ".join(str(int(x)) for x in v)  # noqa: E731
         self.defines = {
             "W": width, "H": height, "NW": self.NW, "NWP": self.NWP, "PADR": self.PADR,
-            "OW": self.OW, "HSTRIDE": self.HSTRIDE, "PSTRIDE": self.PSTRIDE, "PPAD": self.PPAD,
+            "OW": self.OW, "PSTRIDE": self.PSTRIDE, "PPAD": self.PPAD,
             "P_SIZE": self.P_SIZE, "P_SLOTS": self.P_SLOTS,
             "SSTRIDE": self.SSTRIDE, "SPAD": self.SPAD, "SAT_SLOTS": self.SAT_SLOTS, "DSAT": self.DSAT,
             "NCH": len(chans),
@@ -294,7 +293,6 @@ class OpenCLEngine:
         ctx = self.ctx
         tail = 64  # vector loads of the last row may run past its end
         self.frame_buf = cl.Buffer(ctx, mf.READ_ONLY, width * height + tail)
-        self.h_buf = cl.Buffer(ctx, mf.READ_WRITE, lay.HSTRIDE * height + tail)
         self.p_buf = cl.Buffer(ctx, mf.READ_WRITE, lay.P_SIZE * lay.P_SLOTS + tail)
         self.sat_buf = cl.Buffer(ctx, mf.READ_WRITE, 2 * lay.sat_elems * lay.SAT_SLOTS + tail)
         self.dsat_buf = cl.Buffer(ctx, mf.READ_WRITE, (2 * lay.sat_elems if lay.DSAT else 0) + tail)
@@ -302,7 +300,7 @@ class OpenCLEngine:
         self.result = cl.Buffer(ctx, mf.READ_WRITE, lay.result_bytes)
         debug_words = 4 * len(params.channels) * height * lay.NWP if debug else 1
         self.debug_buf = cl.Buffer(ctx, mf.READ_WRITE, 4 * debug_words)
-        for buf in (self.frame_buf, self.h_buf, self.p_buf, self.sat_buf, self.dsat_buf):
+        for buf in (self.frame_buf, self.p_buf, self.sat_buf, self.dsat_buf):
             cl.enqueue_fill_buffer(self.queue, buf, np.uint8(0), 0, buf.size)
         # kernel objects of our own (the program is shared per process and shape; kernel
         # arguments are per object, so engines in different threads never collide)
@@ -322,7 +320,7 @@ class OpenCLEngine:
         # buffer arguments are set once; per frame only the scalars change (pyopencl's
         # Kernel.__call__ would set every argument again: ~10 us per launch)
         zero = np.int32(0)
-        self._k_prefilter.set_args(self.frame_buf, self.h_buf, self.p_buf, self.sat_buf, self.result, zero, zero)
+        self._k_prefilter.set_args(self.frame_buf, self.p_buf, self.sat_buf, self.result, zero, zero)
         self._k_integral.set_args(self.sat_buf, self.dsat_buf, zero)
         self._k_states.set_args(self.sat_buf, self.dsat_buf, self.planes, self.p_buf, self.frame_buf, self.result,
                                 zero, zero)
@@ -358,8 +356,8 @@ class OpenCLEngine:
         slot = self.t % lay.SAT_SLOTS
         p_slot = self.t % lay.P_SLOTS
         launch = cl.enqueue_nd_range_kernel
-        self._set_prefilter(5, slot)
-        self._set_prefilter(6, p_slot)
+        self._set_prefilter(4, slot)
+        self._set_prefilter(5, p_slot)
         self._set_integral(2, slot)
         self._set_states(6, t)
         self._set_states(7, int(self.theta_q))

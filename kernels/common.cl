@@ -4,7 +4,6 @@
  *   NWP, PADR       padded plane row length (NW rounded up to 8 words, plus one zero word
  *                   on each side) and zero rows above and below (2 * max scale), so the
  *                   detectors never test bounds
- *   HSTRIDE         row stride of the horizontal-pass buffer (whole 16-px strips)
  *   PSTRIDE, PPAD   row stride and left padding of the prefiltered image P (uchar)
  *   P_SIZE, P_SLOTS one slot of P (PSTRIDE * H) and the frames of P kept (max delay + 1)
  *   SSTRIDE, SPAD   row stride and left padding of the summed-area tables (ushort, H + 1 rows)

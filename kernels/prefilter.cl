@@ -1,8 +1,9 @@
 /* Stage 1: integer Gaussian prefilter (paper section 4) and the column sums of the
  * summed-area table. One work item walks down a strip of 16 columns: it computes the
  * horizontal pass of the row RADIUS below (reads clamped to the frame, rounded to gray
- * levels), the vertical pass of the current row from the strip's own horizontal results,
- * and the running column sums (uint16 arithmetic wraps; every box sum taken from the table
+ * levels) into a sliding window of 2 RADIUS + 1 rows held in registers, the vertical pass
+ * of the current row from that window (no round trip through memory), and the running
+ * column sums (uint16 arithmetic wraps; every box sum taken from the table
  * is below 2^16, so box sums stay exact).
  * The taps are symmetric (w[i] == w[2 RADIUS - i]): mirror pairs are added first and
  * multiplied once. Sums stay below 2^16 (255 * 256 + 128), so ushort lanes are exact. */
@@ -38,9 +39,8 @@ inline ushort16 horizontal16(__global const uchar *row, int x0)
     return acc >> 8;
 }
 
-__kernel void prefilter_columns(__global const uchar *frame, __global uchar *hbuf,
-                                __global uchar *P, __global ushort *sat, __global char *result, int slot,
-                                int p_slot)
+__kernel void prefilter_columns(__global const uchar *frame, __global uchar *P, __global ushort *sat,
+                                __global char *result, int slot, int p_slot)
 {
     /* first, zero this work item's share of the frame's counters and histograms (the later
      * stages add to them atomically): cheaper than a separate fill command */
@@ -54,27 +54,24 @@ __kernel void prefilter_columns(__global const uchar *frame, __global uchar *hbu
     const int x0 = get_global_id(0) * 16;
     if (x0 >= W) return;  /* the global size is padded to whole work-groups */
     __global ushort *S = sat + slot * SAT_SIZE + SPAD + 1 + x0;
-    for (int y = 0; y < RADIUS && y < H; y++)
-        STORE_UC16(hbuf + y * HSTRIDE + x0, convert_uchar16(horizontal16(frame + y * W, x0)));
+    __global uchar *Pout = P + p_slot * P_SIZE + PPAD + x0;
+    /* the horizontal passes of rows y - RADIUS .. y + RADIUS (clamped to the frame) in a
+     * window of registers that slides down one row per step (constant indices only) */
+    uchar16 h[2 * RADIUS + 1];
+    _Pragma("unroll") for (int j = 0; j < 2 * RADIUS + 1; j++)
+        h[j] = convert_uchar16(horizontal16(frame + CLAMPI(j - RADIUS, 0, H - 1) * W, x0));
     ushort16 colsum = (ushort16)(0);
     for (int y = 0; y < H; y++) {
-        if (y + RADIUS < H)
-            STORE_UC16(hbuf + (y + RADIUS) * HSTRIDE + x0,
-                       convert_uchar16(horizontal16(frame + (y + RADIUS) * W, x0)));
-        ushort16 acc;
-        if (y >= RADIUS && y + RADIUS < H) {
-            TAPS16(acc, hbuf + y * HSTRIDE + x0, HSTRIDE);
-        } else {
-            acc = (ushort16)(128);
-            _Pragma("unroll") for (int j = 0; j < 2 * RADIUS + 1; j++) {
-                const int yy = CLAMPI(y + j - RADIUS, 0, H - 1);
-                acc += PF_W[j] * convert_ushort16(LOAD_UC16(hbuf + yy * HSTRIDE + x0));
-            }
-        }
+        ushort16 acc = (ushort16)(128) + PF_W[RADIUS] * convert_ushort16(h[RADIUS]);
+        _Pragma("unroll") for (int j = 0; j < RADIUS; j++)
+            acc += PF_W[j] * (convert_ushort16(h[j]) + convert_ushort16(h[2 * RADIUS - j]));
         const ushort16 p = acc >> 8;
         /* lanes beyond W fall in padding that nothing reads unmasked */
-        STORE_UC16(P + p_slot * P_SIZE + y * PSTRIDE + PPAD + x0, convert_uchar16(p));
+        STORE_UC16(Pout + y * PSTRIDE, convert_uchar16(p));
         colsum += p;
         STORE_US16(S + (y + 1) * SSTRIDE, colsum);
+        _Pragma("unroll") for (int j = 0; j < 2 * RADIUS; j++) h[j] = h[j + 1];
+        const int next = y + RADIUS + 1 < H - 1 ? y + RADIUS + 1 : H - 1;
+        h[2 * RADIUS] = convert_uchar16(horizontal16(frame + next * W, x0));
     }
 }
