@@ -1,49 +1,104 @@
 """Looming cues: expansion rate, time to contact, left/right and top/bottom balance."""
 
 import math
+import time
 
 import numpy as np
+import pytest
 
 import emdflow
-from emdflow.cues import looming_cues
+from emdflow import cues
+from emdflow.cues import _table_for, looming_cues, slope_expansion_rate
 from emdflow.synthetic import CameraFlight
 
 W, H = 320, 240
+EXTENDED = {"delays": (1, 2, 4), "delay_scales": (1,), "threshold_mode": "adaptive"}
 
 
-def median_cues(frames):
-    est = emdflow.FlowEstimator(W, H)
-    cues = [looming_cues(est.update(f)) for f in frames]
-    return cues[:3], cues[3:]
+def fly(flight, frames, **engine):
+    """Cues of the ready frames (after the detector's history) of ``frames`` frames."""
+    est = emdflow.FlowEstimator(W, H, **engine)
+    fields = [est.update(flight.render(t)) for t in range(est.params.history_frames + frames)]
+    return [looming_cues(f) for f in fields if f.ready], fields
+
+
+def median_rate(cues):
+    return float(np.median([c.expansion_rate for c in cues]))
 
 
 def test_no_cue_before_history_is_full():
     flight = CameraFlight("gravel", width=W, height=H, expansion_rate=0.02, flow=(0, 0), ground_scale=2.0)
-    first, _ = median_cues([flight.render(t) for t in range(5)])
+    est = emdflow.FlowEstimator(W, H)
+    first = [looming_cues(est.update(flight.render(t))) for t in range(est.params.history_frames)]
     assert all(c.detections == 0 and c.expansion_rate == 0.0 and math.isinf(c.time_to_contact_frames) for c in first)
 
 
-def test_expansion_sign_and_monotonic_in_the_true_rate():
-    rates = {}
-    for r in (-0.02, 0.0, 0.01, 0.02, 0.04):
-        flight = CameraFlight("brick", width=W, height=H, expansion_rate=r, flow=(0, 0), ground_scale=2.0, seed=2)
-        _, cues = median_cues([flight.render(t) for t in range(10)])
-        rates[r] = float(np.median([c.expansion_rate for c in cues]))
-    assert rates[-0.02] < -0.005, rates
-    assert abs(rates[0.0]) < 0.003, rates
-    assert 0.005 < rates[0.01] < rates[0.02] < rates[0.04], rates
-    # approaching: finite time to contact, receding: none
-    flight = CameraFlight("brick", width=W, height=H, expansion_rate=0.02, flow=(0, 0), ground_scale=2.0)
-    _, cues = median_cues([flight.render(t) for t in range(8)])
-    ttc = float(np.median([c.time_to_contact_frames for c in cues]))
-    assert 10 < ttc < 100  # truth 50 frames; the cue errs early (see emdflow.cues)
+@pytest.mark.parametrize("texture", ["gravel", "grass"])
+def test_zoom_rate_is_within_15_percent_of_truth(texture):
+    """The issue's target, on two of the evaluation photographs (the calibration never saw
+    them): the extended model at 1 %/frame, the paper's at 2 %/frame (its slowest channel
+    is 1 px/frame: slower zooms barely reach it), where the former line fit read 1.5–1.9×
+    the truth; and the extended model at 0.5 %/frame (the edges move 0.8 px/frame) within
+    20 %."""
+    for engine, rate, tolerance in ((EXTENDED, 0.01, 0.15), ({}, 0.02, 0.15), (EXTENDED, 0.005, 0.2)):
+        flight = CameraFlight(texture, width=W, height=H, flow=(0, 0), expansion_rate=rate,
+                              supersample=2, seed=11)
+        cues, fields = fly(flight, 6, **engine)
+        measured = median_rate(cues)
+        assert abs(measured / rate - 1.0) < tolerance, (texture, engine, rate, measured)
+        ttc = float(np.median([c.time_to_contact_frames for c in cues]))
+        assert abs(ttc * rate - 1.0) < tolerance + 0.05, (texture, engine, rate, ttc)
+        if tolerance == 0.15:
+            old = float(np.median([slope_expansion_rate(f) for f in fields if f.ready]))
+            assert old / rate > 1.3, (texture, engine, rate, old)  # the former cue, for the record
+
+
+def test_receding_is_negative_and_has_no_time_to_contact():
+    flight = CameraFlight("gravel", width=W, height=H, flow=(0, 0), expansion_rate=-0.01, supersample=2, seed=3)
+    cues, _ = fly(flight, 6, **EXTENDED)
+    assert -0.013 < median_rate(cues) < -0.007
+    assert all(math.isinf(c.time_to_contact_frames) for c in cues)
+
+
+def test_static_scene_gives_no_cue():
+    flight = CameraFlight("grass", width=W, height=H, flow=(0, 0), seed=5)
+    cues, _ = fly(flight, 4)
+    assert all(c.detections == 0 and c.expansion_rate == 0.0 for c in cues)
 
 
 def test_translation_has_no_expansion():
     flight = CameraFlight("gravel", width=W, height=H, flow=(3.0, -2.0), seed=4)
-    _, cues = median_cues([flight.render(t) for t in range(9)])
-    # texture inhomogeneity alone gives |r| of a few 1e-3 (a time to contact of > 100 frames)
-    assert abs(float(np.median([c.expansion_rate for c in cues]))) < 0.008
+    cues, _ = fly(flight, 6)
+    assert all(c.detections > 1000 for c in cues)
+    # texture inhomogeneity alone gives |r| of a few 1e-3 (a time to contact of > 200 frames)
+    assert abs(median_rate(cues)) < 0.005
+    cues, _ = fly(CameraFlight("grass", width=W, height=H, flow=(0.5, 0.3), seed=4), 6, **EXTENDED)
+    assert abs(median_rate(cues)) < 0.002
+
+
+def test_uncalibrated_channels_fall_back_to_the_line_fit():
+    flight = CameraFlight("gravel", width=W, height=H, flow=(0, 0), expansion_rate=0.02, supersample=2, seed=2)
+    est = emdflow.FlowEstimator(W, H, scales=(1, 3, 5, 7))
+    assert _table_for(est.params) is None
+    for t in range(est.params.history_frames + 2):
+        field = est.update(flight.render(t))
+    cue = looming_cues(field)
+    assert cue.detections > 0 and cue.expansion_rate == pytest.approx(slope_expansion_rate(field))
+    assert cue.expansion_rate > 0.01
+
+
+def test_cost_does_not_depend_on_frame_size():
+    """The cue works on the 2 × 16 position bins only: well under a millisecond on the
+    test host (the bound here is loose; see the README for the measured cost)."""
+    flight = CameraFlight("gravel", width=640, height=480, flow=(1.0, 0.5), expansion_rate=0.01, seed=1)
+    est = emdflow.FlowEstimator(640, 480, **EXTENDED)
+    fields = [est.update(flight.render(t)) for t in range(est.params.history_frames + 3)]
+    field = fields[-1]
+    assert looming_cues(field).detections > 0
+    t0 = time.perf_counter()
+    for _ in range(50):
+        looming_cues(field)
+    assert (time.perf_counter() - t0) / 50 < 3e-3
 
 
 def test_balance_points_to_the_faster_half():
@@ -55,8 +110,30 @@ def test_balance_points_to_the_faster_half():
         frame = slow.render(t)
         frame[:, : W // 2] = fast.render(t)[:, : W // 2]
         frames.append(frame)
-    _, cues = median_cues(frames)
+    est = emdflow.FlowEstimator(W, H)
+    cues = [looming_cues(est.update(f)) for f in frames][3:]
     assert float(np.median([c.balance_lr for c in cues])) < -0.2
     # and the same scene mirrored: the right half is faster
-    _, cues = median_cues([np.ascontiguousarray(f[:, ::-1]) for f in frames])
+    est = emdflow.FlowEstimator(W, H)
+    cues = [looming_cues(est.update(np.ascontiguousarray(f[:, ::-1]))) for f in frames][3:]
     assert float(np.median([c.balance_lr for c in cues])) > 0.2
+
+
+def test_zoom_eval_tool_reports_every_cell(tmp_path):
+    from emdflow.tools import zoom_eval
+
+    results = zoom_eval.evaluate(models=("paper",), textures=("gravel",), rates=(0.02,),
+                                 translations=((0.0, 0.0),), frames=2, flights=1, backend="numpy",
+                                 width=96, height=72)
+    cell = results[("paper", (0.0, 0.0), "gravel", 0.02)]
+    assert len(cell["new"]) == len(cell["old"]) == 2
+    report = zoom_eval.format_report(results)
+    assert "| gravel |" in report and "median relative error" in report
+    # the tables round-trip through the file the cue reads
+    table = {"channels": ((1, 1),), "threshold_mode": "fixed", "flights": 1, "seed": 0,
+             "response": np.arange(300.0).reshape(30, 10) / 7, "rate": np.ones((30, 10))}
+    path = zoom_eval.write_calibration({"x": table}, tmp_path / "t.npz")
+    back = cues.load_calibration(path)["x"]
+    assert back["channels"] == ((1, 1),) and back["threshold_mode"] == "fixed" and back["flights"] == 1
+    assert np.array_equal(back["response"], table["response"]) and "x: channels" in zoom_eval.format_calibration(
+        {"x": table})

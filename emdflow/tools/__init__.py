@@ -12,6 +12,12 @@ evaluate
     ``emdflow eval``: camera flights with exact truth, the engine against OpenCV DIS.
 frames
     ``emdflow frames``: one CSV line of summary per frame.
+calibrate_summary
+    ``python -m emdflow.tools.calibrate_summary``: the summary's likelihood tables (fit,
+    evaluate).
+zoom_eval
+    ``python -m emdflow.tools.zoom_eval``: the expansion-rate cue on zoom flights (measure,
+    calibrate).
 
 This package module holds what the subcommands share: :class:`ToolError` (a one-line
 message plus an exit code), the engine options and a progress bar.
