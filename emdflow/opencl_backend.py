@@ -99,16 +99,24 @@ def _pick_device(device):
     raise ValueError(f"OpenCL device {choice!r} not found among: {names}")
 
 
-def _int_arg_setter(kernel):
+def _int_arg_setter(kernel, probe_index: int):
     """``set(index, value)`` for a kernel's per-frame int arguments.
 
     pyopencl's ``Kernel.set_arg`` dispatches on the argument's type in Python (~8 us per
-    call here, five calls a frame); its raw-bytes setter takes ~0.2 us. Older or other
-    pyopencl builds without it fall back to ``set_arg``."""
+    call here, five calls a frame); its raw-bytes setter takes ~0.2 us. A pyopencl build
+    without it (or where it refuses bytes: probed on the int argument ``probe_index``)
+    falls back to ``set_arg``."""
+    def slow(index, value):
+        kernel.set_arg(index, np.int32(value))
+
     raw = getattr(kernel, "_set_arg_buf", None)
     if raw is None:
-        return lambda index, value: kernel.set_arg(index, np.int32(value))
+        return slow
     pack = struct.Struct("<i").pack
+    try:
+        raw(probe_index, pack(0))
+    except Exception:  # noqa: BLE001 - a private API: any failure means "use the public one"
+        return slow
     return lambda index, value: raw(index, pack(value))
 
 
@@ -326,7 +334,8 @@ class OpenCLEngine:
                                 zero, zero)
         self._k_evd.set_args(self.planes, self.result, self.debug_buf, self.sat_buf, self.p_buf, zero)
         self._set_prefilter, self._set_integral, self._set_states, self._set_evd = (
-            _int_arg_setter(k) for k in (self._k_prefilter, self._k_integral, self._k_states, self._k_evd))
+            _int_arg_setter(k, i) for k, i in ((self._k_prefilter, 4), (self._k_integral, 2),
+                                               (self._k_states, 6), (self._k_evd, 5)))
         #: set to a list to collect each frame's command events (needs a profiling queue)
         self.trace = None
         self.reset()

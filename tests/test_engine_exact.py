@@ -138,3 +138,26 @@ def test_long_run_past_the_device_time_period():
             assert np.array_equal(x, y), f"frame {t} differs"
         fired += int(np.count_nonzero(a[0]))
     assert fired > 0
+
+
+def test_int_arguments_fall_back_to_the_public_setter():
+    """The per-frame int arguments go through pyopencl's raw-bytes setter; a pyopencl
+    without it, or where it refuses bytes, gets the public ``set_arg`` instead."""
+    seen = []
+
+    class Public:
+        def set_arg(self, index, value):
+            seen.append((index, int(value), type(value).__name__))
+
+    class Refusing(Public):
+        def _set_arg_buf(self, index, data):
+            raise TypeError("no bytes here")
+
+    class Raw(Public):
+        def _set_arg_buf(self, index, data):
+            seen.append((index, int.from_bytes(data, "little", signed=True), "raw"))
+
+    for kernel in (Public(), Refusing()):
+        opencl_backend._int_arg_setter(kernel, 3)(3, -7)
+    opencl_backend._int_arg_setter(Raw(), 1)(1, 12345)
+    assert seen == [(3, -7, "int32"), (3, -7, "int32"), (1, 0, "raw"), (1, 12345, "raw")]
