@@ -3,7 +3,7 @@
  *   now = R_k(t), then = R_k(t - D)   (k x k box sums from the summed-area tables)
  *   state = +1 if now - then > T, -1 if then - now > T, else 0 (unsigned compares, so
  *   the 16-bit box sums never overflow), and 0 where the block is not inside the frame;
- *   for D = 1 and k <= 11, now - then is one box sum of the difference table dsat
+ *   for D = 1 and 1 < k <= 11, now - then is one box sum of the difference table dsat
  *   (= S_t - S_(t-1), see integral_rows): |now - then| <= 121 * 255 < 2^15, so the
  *   wrapped box sum read as int16 is exact (4 loads from one table instead of 8 from two);
  *   for k = 1 the receptor is the prefiltered pixel itself: P_t - P_(t-D) from the ring
