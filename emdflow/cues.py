@@ -104,6 +104,17 @@ CROSS_NODES = (0.0, 0.25, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0)
 SCORE_CLIP = 5.0
 
 
+def _signed_speeds(params) -> np.ndarray:
+    """Signed channel speed of every code (2c: +, 2c + 1: −)."""
+    speeds = np.asarray(params.speeds, np.float64)
+    return np.repeat(speeds, 2) * np.tile([1.0, -1.0], len(speeds))
+
+
+def _centres(size: int, bins: int) -> np.ndarray:
+    """Centres of ``bins`` equal bins over ``size`` px, relative to the middle."""
+    return (np.arange(bins) + 0.5) * size / bins - size / 2.0
+
+
 class _Table:
     """One channel set's tables, resampled (bilinearly) on a fine uniform grid for
     nearest-node lookups, with the score of every code."""
@@ -112,7 +123,7 @@ class _Table:
     A_SCALE = 64.0
     O_SCALE = 16.0
 
-    def __init__(self, entry: dict, speeds):
+    def __init__(self, entry: dict, params):
         g = np.asarray(entry["response"], np.float64)
         d = np.maximum(np.asarray(entry["rate"], np.float64), 1e-6)
         g[0, :] = 0.0  # the response is odd in the axial flow
@@ -138,9 +149,7 @@ class _Table:
         self.d = np.concatenate([dd[:0:-1], dd]).ravel()
         self.a_offset = self.n_a - 1 + 0.5
         self.a_top = 2 * self.n_a - 2
-        speeds = np.asarray(speeds, np.float64)
-        self.signed = np.repeat(speeds, 2) * np.tile([1.0, -1.0], len(speeds))  # code 2c / 2c+1
-        self.score = np.clip(self.signed, -SCORE_CLIP, SCORE_CLIP)
+        self.score = np.clip(_signed_speeds(params), -SCORE_CLIP, SCORE_CLIP)
         self.score2 = self.score ** 2
 
 
@@ -181,7 +190,7 @@ def _table_for(params):
         if "models" not in _CALIBRATION:
             _CALIBRATION["models"] = load_calibration() if CALIBRATION_FILE.is_file() else {}
         entry = next((e for e in _CALIBRATION["models"].values() if e["channels"] == key), None)
-        _TABLES[key] = None if entry is None else _Table(entry, params.speeds)
+        _TABLES[key] = None if entry is None else _Table(entry, params)
     return _TABLES[key]
 
 
@@ -202,10 +211,8 @@ class _Geometry:
 
     def __init__(self, width: int, height: int, bins: int, axes):
         m = self.SAMPLES
-        along = ((np.arange(bins) + 0.5) * width / bins - width / 2.0,
-                 (np.arange(bins) + 0.5) * height / bins - height / 2.0)
-        across = ((np.arange(m) + 0.5) * height / m - height / 2.0,
-                  (np.arange(m) + 0.5) * width / m - width / 2.0)
+        along = (_centres(width, bins), _centres(height, bins))
+        across = (_centres(height, m), _centres(width, m))
         self.x = np.stack([along[a] for a in axes])[:, :, None]
         self.y = np.stack([across[a] for a in axes])[:, None, :]
         # the parameter (U = 0, V = 1) that is the in-axis / cross translation of each axis
@@ -343,16 +350,6 @@ def _fit_rate(table: _Table, field: FlowField, pos: np.ndarray, counts: np.ndarr
 # ---------------------------------------------------------------------------------------
 # Uncalibrated channel sets: line fit of the mean signed channel speed; and the balance
 # ---------------------------------------------------------------------------------------
-def _signed_speeds(params) -> np.ndarray:
-    """Signed channel speed of every code (2c: +, 2c + 1: −)."""
-    speeds = np.asarray(params.speeds, np.float64)
-    return np.repeat(speeds, 2) * np.tile([1.0, -1.0], len(speeds))
-
-
-def _centres(size: int, bins: int) -> np.ndarray:
-    return (np.arange(bins) + 0.5) * size / bins - size / 2.0
-
-
 def _slope_rate(pos: np.ndarray, counts: np.ndarray, signed: np.ndarray, shape, axes) -> float:
     """Detection-weighted mean over ``axes`` of the weighted line fits of the mean signed
     channel speed against position (the uncalibrated expansion rate)."""
@@ -411,7 +408,7 @@ def looming_cues(field: FlowField, *, min_detections: int = 50) -> LoomingCues:
         return LoomingCues()
     axes = tuple(int(a) for a in np.flatnonzero(usable))
     table = _table_for(field.params)
-    signed = table.signed if table is not None else _signed_speeds(field.params)
+    signed = _signed_speeds(field.params)
     if table is not None:
         rate = _fit_rate(table, field, pos, counts, axes)
         if rate is None:

@@ -20,7 +20,8 @@ zoom_eval
     calibrate).
 
 This package module holds what the subcommands share: :class:`ToolError` (a one-line
-message plus an exit code), the engine options and a progress bar.
+message plus an exit code), the engine options, a progress bar, and the linear soft
+binning the calibration tools measure their tables with.
 """
 
 from __future__ import annotations
@@ -28,7 +29,8 @@ from __future__ import annotations
 import ast
 import contextlib
 
-__all__ = ["ToolError", "add_engine_arguments", "engine_kwargs", "make_estimator", "progress_bar"]
+__all__ = ["ToolError", "add_engine_arguments", "engine_kwargs", "interp_weights", "make_estimator",
+           "number_list", "progress_bar"]
 
 
 class ToolError(Exception):
@@ -37,6 +39,17 @@ class ToolError(Exception):
     def __init__(self, message: str, code: int = 2):
         super().__init__(message)
         self.code = code
+
+
+def interp_weights(x, nodes):
+    """Lower node index ``i`` and the weight of node ``i + 1`` of each ``x`` on the increasing
+    ``nodes`` (linear soft binning, clamped to the nodes)."""
+    import numpy as np
+
+    nodes = np.asarray(nodes, np.float64)
+    x = np.clip(x, nodes[0], nodes[-1])
+    i = np.clip(np.searchsorted(nodes, x, side="right") - 1, 0, len(nodes) - 2)
+    return i, (x - nodes[i]) / (nodes[i + 1] - nodes[i])
 
 
 def number_list(text: str, kind=int) -> tuple:

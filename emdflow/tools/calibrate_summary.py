@@ -77,6 +77,7 @@ from pathlib import Path
 import numpy as np
 
 from emdflow.params import MODELS as _MODELS
+from emdflow.tools import interp_weights
 
 CALIBRATION_TEXTURES = ("moon", "coffee", "astronaut", "rocket")
 
@@ -210,15 +211,6 @@ CONTRAST_EDGES = {"paper": (), "extended": (3.75,)}
 MIN_CELL_WEIGHT = 100.0
 
 
-def _interp_weights(x, nodes):
-    """Indices (i, i+1) and linear weights of ``x`` on increasing ``nodes`` (clamped)."""
-    nodes = np.asarray(nodes, np.float64)
-    x = np.clip(x, nodes[0], nodes[-1])
-    i = np.clip(np.searchsorted(nodes, x, side="right") - 1, 0, len(nodes) - 2)
-    f = (x - nodes[i]) / (nodes[i + 1] - nodes[i])
-    return i, f
-
-
 def crossing_geometry():
     """Per (axis, orientation bin): unit normal (2, 64, 2), signed n_a and ψ in degrees."""
     from emdflow.params import EngineParams
@@ -250,9 +242,9 @@ def accumulate(hist, flow, u_offset=U_OFFSET, u_count=U_COUNT):
     c = vn / n_axis
     beta = np.sqrt(np.clip(1.0 - (vn / speed) ** 2, 0.0, 1.0))
     shape = (len(PSI_NODES_DEG), len(BETA_NODES), u_count, n_codes)
-    ui, uf = _interp_weights(np.log(np.abs(c) + u_offset), u_nodes(u_offset, u_count))
-    bi, bf = _interp_weights(beta, BETA_NODES)
-    pi, pf = _interp_weights(psi, PSI_NODES_DEG)
+    ui, uf = interp_weights(np.log(np.abs(c) + u_offset), u_nodes(u_offset, u_count))
+    bi, bf = interp_weights(beta, BETA_NODES)
+    pi, pf = interp_weights(psi, PSI_NODES_DEG)
     pi = np.broadcast_to(pi, c.shape)
     pf = np.broadcast_to(pf, c.shape)
     codes = np.arange(n_codes)

@@ -19,8 +19,8 @@ time per ``looming_cues`` call::
 Calibrate: zoom flights (approaching and receding, 40 % without translation) over other
 photographs measure, per detector model, the mean detection score and the detection rate
 as functions of the local flow along and across the detector's axis; ``--write`` stores
-the tables in ``emdflow/cues_calibration.npz`` (the committed tables are what this writes,
-~5 minutes on 2 cores)::
+the tables in ``emdflow/cues_calibration.npz`` (the committed tables are its output,
+rounded to 4 significant digits; ~5 minutes on 2 cores)::
 
     python -m emdflow.tools.zoom_eval calibrate --write
 
@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from emdflow.params import MODELS
+from emdflow.tools import interp_weights, number_list
 
 __all__ = [
     "CALIBRATION_TEXTURES",
@@ -201,13 +202,6 @@ def format_report(results: dict) -> str:
 # ---------------------------------------------------------------------------------------
 # Calibration
 # ---------------------------------------------------------------------------------------
-def _soft(x: np.ndarray, nodes: np.ndarray):
-    """Lower node index and weight of the upper node (linear soft binning, clamped)."""
-    x = np.clip(x, nodes[0], nodes[-1])
-    i = np.minimum(np.searchsorted(nodes, x, side="right") - 1, nodes.size - 2)
-    return i, (x - nodes[i]) / (nodes[i + 1] - nodes[i])
-
-
 class _Accumulator:
     """Soft-binned sums on the (|axial|, |cross|) flow grid of :mod:`emdflow.cues`."""
 
@@ -222,8 +216,8 @@ class _Accumulator:
         self.pixels = np.zeros(shape)  # pixels × textured share of the frame
 
     def add(self, target, axial, cross, weight):
-        i, fi = _soft(np.abs(axial), self.a_nodes)
-        j, fj = _soft(np.abs(cross), self.o_nodes)
+        i, fi = interp_weights(np.abs(axial), self.a_nodes)
+        j, fj = interp_weights(np.abs(cross), self.o_nodes)
         for ii, wi in ((i, 1.0 - fi), (i + 1, fi)):
             for jj, wj in ((j, 1.0 - fj), (j + 1, fj)):
                 np.add.at(target, (ii, jj), wi * wj * weight)
@@ -313,10 +307,12 @@ def calibrate(model: str, flights: int = 2400, seed: int = 20240610, backend: st
         est.reset()
         fx = u + r * X
         fy = v + r * Y
+        textured = 0.0  # the frames' textured shares: the pixels' flows are the flight's
         for t in range(total):
             field = est.update(flight.render(t))
             if not field.ready:
                 continue
+            textured += field.textured_fraction
             for axial, cross, code in ((fx, fy, field.u_code), (fy, fx, field.v_code)):
                 c = code[0::2].astype(np.int64)
                 hit = c != 0
@@ -324,7 +320,8 @@ def calibrate(model: str, flights: int = 2400, seed: int = 20240610, backend: st
                 score = code_score[c[hit]] * np.where(a < 0.0, -1.0, 1.0)
                 acc.add(acc.count, a, o, 1.0)
                 acc.add(acc.score, a, o, score)
-                acc.add(acc.pixels, axial.ravel(), cross.ravel(), field.textured_fraction)
+        for axial, cross in ((fx, fy), (fy, fx)):
+            acc.add(acc.pixels, axial.ravel(), cross.ravel(), textured)
         if progress and (k + 1) % 100 == 0:
             progress(k + 1, flights)
     response = acc.score / np.maximum(acc.count, 1e-9)
@@ -377,17 +374,12 @@ def write_calibration(tables: dict, path: Path | None = None) -> Path:
 
 
 # ---------------------------------------------------------------------------------------
-def _floats(text: str) -> tuple:
-    return tuple(float(x) for x in text.split(",") if x.strip())
-
-
 def _translations(text: str) -> tuple:
-    out = []
-    for item in text.split(";"):
-        if item.strip():
-            u, v = _floats(item)
-            out.append((u, v))
-    return tuple(out)
+    """argparse type: ``u,v`` px/frame pairs separated by ``;``."""
+    pairs = tuple(number_list(item, float) for item in text.split(";") if item.strip())
+    if not pairs or any(len(p) != 2 for p in pairs):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected u,v pairs separated by ';'")
+    return pairs
 
 
 def main(argv=None) -> int:
@@ -400,9 +392,9 @@ def main(argv=None) -> int:
     ap.add_argument("--textures", default=",".join(EVALUATION_TEXTURES),
                     help="evaluate: comma-separated photographs (calibrate always flies "
                          "CALIBRATION_TEXTURES)")
-    ap.add_argument("--rates", default=",".join(f"{r:g}" for r in DEFAULT_RATES),
+    ap.add_argument("--rates", type=lambda text: number_list(text, float), default=DEFAULT_RATES,
                     help="expansion rates per frame, comma-separated (negative: receding)")
-    ap.add_argument("--translations", default="0,0;2,-1",
+    ap.add_argument("--translations", type=_translations, default=DEFAULT_TRANSLATIONS,
                     help="u,v px/frame pairs separated by ';' (default '0,0;2,-1')")
     ap.add_argument("--frames", type=int, default=8, help="measured frames per flight")
     ap.add_argument("--flights", type=int, default=None,
@@ -433,8 +425,8 @@ def main(argv=None) -> int:
             print(format_calibration(tables))
         return 0
     textures = tuple(t for t in a.textures.split(",") if t)
-    results = evaluate(models=models, textures=textures, rates=_floats(a.rates),
-                       translations=_translations(a.translations), frames=a.frames,
+    results = evaluate(models=models, textures=textures, rates=a.rates,
+                       translations=a.translations, frames=a.frames,
                        flights=a.flights or 6, backend=a.backend, seed=1 if a.seed is None else a.seed)
     print(format_report(results))
     print(f"({time.time() - t0:.0f} s, backend {a.backend})")
