@@ -110,6 +110,17 @@ inline uint pack16(short16 mask)
 typedef short emd_v16hi __attribute__((__vector_size__(32)));
 typedef char emd_v32qi __attribute__((__vector_size__(32)));
 typedef long emd_v4di __attribute__((__vector_size__(32)));
+typedef struct __attribute__((packed)) { emd_v32qi v; } emd_v32qi_u;
+/* bit l = (now[l] - then[l] > T) for 32 bytes: sat(sat(now - T) - then) != 0 (vpsubusb,
+ * vpcmpeqb, vpmovmskb: 32 pixels per instruction, no widening to 16 bits) */
+inline uint exceeds32(__global const uchar *now, __global const uchar *then, uchar T)
+{
+    const emd_v32qi a = ((__global const emd_v32qi_u *)now)->v;
+    const emd_v32qi b = ((__global const emd_v32qi_u *)then)->v;
+    const emd_v32qi zero = {};
+    const emd_v32qi d = __builtin_ia32_psubusb256(__builtin_ia32_psubusb256(a, zero + (char)T), b);
+    return ~(uint)__builtin_ia32_pmovmskb256((emd_v32qi)(d == zero));
+}
 inline ushort16 subs_u16(ushort16 a, ushort16 b)
 {
     return __builtin_astype(__builtin_ia32_psubusw256(__builtin_astype(a, emd_v16hi),
@@ -126,6 +137,12 @@ inline uint pack32(short16 lo, short16 hi)
 }
 #else
 inline ushort16 subs_u16(ushort16 a, ushort16 b) { return a > b ? a - b : (ushort16)(0); }
+inline uint exceeds32(__global const uchar *now, __global const uchar *then, uchar T)
+{
+    const short16 d0 = convert_short16(LOAD_UC16(now)) - convert_short16(LOAD_UC16(then));
+    const short16 d1 = convert_short16(LOAD_UC16(now + 16)) - convert_short16(LOAD_UC16(then + 16));
+    return pack32(d0 > (short)T, d1 > (short)T);
+}
 inline uint pack32(short16 lo, short16 hi) { return pack16(lo) | (pack16(hi) << 16); }
 #endif
 /* bits [lo, hi] of a 32-bit word (empty if hi < lo; both may lie outside 0..31) */

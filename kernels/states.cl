@@ -51,16 +51,17 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
         for (int i = 0; i < NW; i++) {
             const int x = i * 32;
             uint pw, nw;
-            if (k <= 11) {
+            if (k == 1) {
+                /* a 1x1 receptor is the prefiltered pixel itself: P_t - P_(t-D), byte-wise */
+                __global const uchar *pn = P_now + y * PSTRIDE + PPAD + x, *pt = P_then + y * PSTRIDE + PPAD + x;
+                const uchar T8 = T > 255 ? 255 : (uchar)T;   /* |P_t - P_(t-D)| <= 255 */
+                pw = exceeds32(pn, pt, T8);
+                nw = exceeds32(pt, pn, T8);
+            } else if (k <= 11) {
                 /* |now - then| <= 121 * 255 < 2^15: the int16 difference is exact */
                 const short Ts = T > 32767 ? 32767 : (short)T;
                 short16 d0, d1;
-                if (k == 1) {
-                    /* a 1x1 receptor is the prefiltered pixel itself: two byte loads */
-                    __global const uchar *pn = P_now + y * PSTRIDE + PPAD + x, *pt = P_then + y * PSTRIDE + PPAD + x;
-                    d0 = convert_short16(LOAD_UC16(pn)) - convert_short16(LOAD_UC16(pt));
-                    d1 = convert_short16(LOAD_UC16(pn + 16)) - convert_short16(LOAD_UC16(pt + 16));
-                } else if (D == 1) {
+                if (D == 1) {
                     d0 = as_short16(box16(dsat, y, x, r));
                     d1 = as_short16(box16(dsat, y, x + 16, r));
                 } else {
