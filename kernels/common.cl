@@ -137,13 +137,13 @@ inline uint pack32(short16 lo, short16 hi)
 }
 #else
 inline ushort16 subs_u16(ushort16 a, ushort16 b) { return a > b ? a - b : (ushort16)(0); }
+inline uint pack32(short16 lo, short16 hi) { return pack16(lo) | (pack16(hi) << 16); }
 inline uint exceeds32(__global const uchar *now, __global const uchar *then, uchar T)
 {
     const short16 d0 = convert_short16(LOAD_UC16(now)) - convert_short16(LOAD_UC16(then));
     const short16 d1 = convert_short16(LOAD_UC16(now + 16)) - convert_short16(LOAD_UC16(then + 16));
     return pack32(d0 > (short)T, d1 > (short)T);
 }
-inline uint pack32(short16 lo, short16 hi) { return pack16(lo) | (pack16(hi) << 16); }
 #endif
 /* bits [lo, hi] of a 32-bit word (empty if hi < lo; both may lie outside 0..31) */
 inline uint bit_range(int lo, int hi)

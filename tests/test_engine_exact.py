@@ -10,7 +10,7 @@ delays).
 import numpy as np
 import pytest
 
-from emdflow.params import EngineParams
+from emdflow.params import MODELS, EngineParams
 from emdflow.reference import ReferenceEngine
 from emdflow.synthetic import CameraFlight
 
@@ -62,6 +62,17 @@ def test_random_and_flight_sequences(size):
     assert _compare(width, height, frames) > 0
 
 
+@pytest.mark.parametrize("params", [EngineParams(), EngineParams(**MODELS["extended"])], ids=["paper", "extended"])
+def test_portable_kernels_are_exact_too(monkeypatch, params):
+    """The kernels without the PoCL/x86 builtins (what GPUs and ARM boards run: portable
+    packs, saturating compares and atomics) give the same states, matches and output."""
+    monkeypatch.setenv(opencl_backend.PORTABLE_ENV, "1")
+    width, height = 101, 59
+    flight = CameraFlight("gravel", width=width, height=height, flow=(1.7, -0.6), noise_sigma=2, seed=6)
+    frames = [flight.render(t) for t in range(params.history_frames + 4)]
+    assert _compare(width, height, frames, params) > 0
+
+
 @pytest.mark.parametrize("size", [(661, 37), (1283, 21)])
 def test_wide_frames(size):
     # from 640 px the summary's evidence samples every 2nd (from 1280 every 4th) column
@@ -91,8 +102,10 @@ def test_structured_edges_every_direction_and_polarity(direction, polarity):
         EngineParams(delays=(1, 3), delay_scales=(1, 3)),
         EngineParams(threshold_mode="adaptive"),
         EngineParams(threshold_mode="adaptive", delays=(1, 2, 4), threshold=7.3),
+        EngineParams(**MODELS["extended"]),
     ],
-    ids=["sharp", "no-prefilter", "w7-scales", "delays124", "delays13", "adaptive", "adaptive-delays"],
+    ids=["sharp", "no-prefilter", "w7-scales", "delays124", "delays13", "adaptive", "adaptive-delays",
+         "extended"],
 )
 def test_parameter_variants(params):
     width, height = 89, 67
