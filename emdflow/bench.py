@@ -200,7 +200,7 @@ def main(argv=None) -> int:
     parser.add_argument("--json", metavar="FILE", help="also write the results as JSON")
     parser.add_argument("--model", default="paper", choices=tuple(MODELS),
                         help="detector model (default: %(default)s; extended = the daemon's default: "
-                             "delays 1, 2, 4 at scale 1 and the adaptive threshold)")
+                             "delays 1, 2, 4 at scale 1, scale 15 and the adaptive threshold)")
     parser.add_argument("--delays", default=None,
                         help="temporal delays of the engine instead, e.g. 1,2,4 (fixed threshold)")
     parser.add_argument("--stages", action="store_true",

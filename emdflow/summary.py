@@ -45,8 +45,9 @@ Method
    factor computed from the curvature of the log-likelihood around its maximum (the
    predicted relative error of ``F``, inflated by a calibrated over-dispersion because
    neighbouring detections are not independent), the disagreement between the IoC guess
-   and the likelihood fit, and the top of the speed range (above ~11 px/frame only the
-   13 px scale fires and speed is poorly resolved). See :class:`SummaryOptions`.
+   and the likelihood fit, and the top of the speed range (above ~11 px/frame with the
+   paper's channels only the 13 px scale fires and speed is poorly resolved; ~12.7 with
+   the extended model's scale 15). See :class:`SummaryOptions`.
 
 Blank, saturated or texture-less frames give flow 0 with quality 0, and so do the three
 frames whose templates contain a global brightness step (an auto-exposure jump; see
@@ -94,27 +95,31 @@ of ~40 %). Brick (few, aligned, periodic edges) is the hardest texture. Cost ≈
 per call on the 2-core host (IoC guess ~0.03 ms, per-frame curves ~0.04 ms, search
 ~0.1 ms); the former 4-level search took ~0.8 ms.
 
-Extended model (``delays=(1, 2, 4)``, ``delay_scales=(1,)``, adaptive threshold; its own
-table): 10 speeds (0.25, 0.5, 1, 2, 3, 5, 7, 9, 11, 13 px/frame) × the same 4 evaluation
-textures × 8 directions × 6 frames = 1920 frames per set, coverage 100 % in every set
-(``evaluate --model extended --random`` etc.; see ``calibrate_summary``). Median relative
-error, median direction error (the IoC fallback, i.e. no table, in brackets):
+Extended model (``scales=(1, 3, …, 13, 15)``, ``delays=(1, 2, 4)``, ``delay_scales=(1,)``,
+adaptive threshold; its own table): 10 speeds (0.25, 0.5, 1, 2, 3, 5, 7, 9, 11, 13
+px/frame) × the same 4 evaluation textures × 8 directions × 6 frames = 1920 frames per
+set, coverage 100 % in every set (``evaluate --model extended --random`` etc.; see
+``calibrate_summary``). Median relative error, median direction error (the IoC fallback,
+i.e. no table, in brackets):
 
 ==========================================  ==============  ================
 set                                         all speeds      0.25 px/frame
 ==========================================  ==============  ================
-random directions                           8.3 %, 2.47°    16.3 %, 3.34°
-multiples of 45° + 0.3 rad                  8.1 %, 2.25°    18.4 %, 4.60°
-random, contrast × 0.25                     9.6 %, 2.59°    19.8 %, 3.36°
-random, exposure drift +20 % per flight     8.4 %, 2.34°    12.6 %, 3.12°
-random, exposure drift −20 % per flight     8.4 %, 2.45°    12.0 %, 3.40°
+random directions                           8.0 %, 2.37°    15.8 %, 3.34°
+multiples of 45° + 0.3 rad                  8.0 %, 2.26°    18.2 %, 4.61°
+random, contrast × 0.25                     9.3 %, 2.55°    20.9 %, 3.42°
+random, exposure drift +20 % per flight     8.1 %, 2.24°    12.5 %, 3.16°
+random, exposure drift −20 % per flight     8.0 %, 2.41°    12.1 %, 3.47°
 ==========================================  ==============  ================
 
-(IoC alone: 17.3 % / 5.9°, 20.8 % / 9.7°, 20.3 % / 5.4°, 16.6 % / 5.7°, 17.2 % / 5.9°.)
+(IoC alone: 16.4 % / 5.7°, 20.0 % / 9.3°, 19.7 % / 5.2°, 16.1 % / 5.6°, 16.5 % / 5.8°.)
 0.5–7 px/frame are within 4–9 % and 1.2–3°; 0.25 px/frame is biased by texture (gravel
-and grass −20 %, brick and camera ±3 %); 9–11 px/frame 12–18 % / 3–6°, 13 px/frame
-29–40 % / 7–10° as for the paper's model. Quality bands (random set): 192–255 → 6.6 %,
-128–191 → 9.1 %, 64–127 → 19 %, 1–63 → 39 %. Cost ≈ 0.25 ms per call.
+and grass −20 %, brick and camera ±3 %; adding calibration flights at 1–2.2× contrast,
+which cover those photographs' mean gradient of 17–19 gray levels, did not change that);
+9–11 px/frame 11–18 % / 3.5–6°, 13
+px/frame 15–23 % / 5–6.5° (without the scale-15 channel, as for the paper's model: 29–40 %
+/ 7–10°). Quality bands (random set): 192–255 → 6.7 %, 128–191 → 9.0 %, 64–127 → 21 %,
+1–63 → 27 %. Cost ≈ 0.3 ms per call.
 
 References
 ----------
@@ -223,9 +228,11 @@ class SummaryOptions:
     quality_error : float
         Expected relative error at which the accuracy factor of the quality is 1/2
         (the factor is ``1 / (1 + (expected_error / quality_error)²)``).
-    top_speed : float
+    top_speed : float or None
         Speed (px/frame) above which the fastest scale alone fires and the expected error
-        grows; the expected error gains ``(|F| / top_speed − 1) · 0.5`` above it.
+        grows; the expected error gains ``(|F| / top_speed − 1) · 0.5`` above it. None:
+        11/13 of the fastest channel's speed (11 for the paper's channels, ~12.7 for the
+        extended model's scale-15 channel).
     row_exponent : float
         A histogram row (axis, orientation) with ``n`` detections weighs like
         ``n ** row_exponent`` independent detections in the likelihood (1: untempered).
@@ -246,7 +253,7 @@ class SummaryOptions:
     outlier_probability: float = 0.01
     overdispersion: float = 0.7
     quality_error: float = 0.15
-    top_speed: float = 11.0
+    top_speed: float | None = None
     row_exponent: float = 0.5
 
 
@@ -666,8 +673,9 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
     else:
         speed = math.hypot(U, V)
         expected = 0.1 + (1.0 - inliers)  # IoC only: a rough figure
-    if speed > opts.top_speed:
-        expected += 0.5 * (speed / opts.top_speed - 1.0)
+    top_speed = max(params.speeds) * (11.0 / 13.0) if opts.top_speed is None else opts.top_speed
+    if speed > top_speed:
+        expected += 0.5 * (speed / top_speed - 1.0)
     q_accuracy = 0.0
     if math.isfinite(expected):
         q_accuracy = 1.0 / (1.0 + (expected / opts.quality_error) ** 2)

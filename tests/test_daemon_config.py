@@ -137,6 +137,6 @@ def test_engine_model_selects_the_estimator_options(tmp_path):
     options = extended.estimator_options()
     assert options["delays"] == (1, 2, 4) and options["threshold_mode"] == "adaptive"
     est = emdflow.FlowEstimator(64, 48, backend="numpy", **options)
-    assert 0.25 in est.params.speeds and est.params.threshold == 6.0
+    assert 0.25 in est.params.speeds and 15 in est.params.scales and est.params.threshold == 6.0
     with pytest.raises(ConfigError, match="model"):
         load_config(_write(tmp_path, '[engine]\nmodel = "fancy"\n'))

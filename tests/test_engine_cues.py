@@ -8,10 +8,11 @@ import pytest
 import emdflow
 from emdflow import cues
 from emdflow.cues import _table_for, looming_cues, slope_expansion_rate
+from emdflow.params import MODELS
 from emdflow.synthetic import CameraFlight
 
 W, H = 320, 240
-EXTENDED = {"delays": (1, 2, 4), "delay_scales": (1,), "threshold_mode": "adaptive"}
+EXTENDED = MODELS["extended"]
 
 
 def fly(flight, frames, **engine):

@@ -11,14 +11,14 @@ import pytest
 import emdflow
 from emdflow.synthetic import CameraFlight
 from emdflow.field import FlowField
-from emdflow.params import EngineParams
+from emdflow.params import MODELS, EngineParams
 from emdflow.reference import STAT_CONTRAST, STAT_FIRST_CHANGED, STAT_SATURATED, STAT_TEXTURED
 from emdflow.summary import CALIBRATION_FILE, SummaryOptions, calibration_for, summarize
 
 W, H = 320, 240
 PARAMS = EngineParams()
 #: The daemon's ``[engine] model = "extended"``.
-EXTENDED = dict(delays=(1, 2, 4), delay_scales=(1,), threshold_mode="adaptive")
+EXTENDED = MODELS["extended"]
 EXT_PARAMS = EngineParams(**EXTENDED)
 
 
@@ -229,7 +229,7 @@ def test_calibration_refuses_evaluation_textures():
         main(["collect", "--flights", "1", "--textures", "moon,gravel", "--out", "/dev/null"])
 
 
-# ---- the extended model (temporal delays 2 and 4 at scale 1, adaptive threshold) ----
+# ---- the extended model (delays 2 and 4 at scale 1, scale 15, adaptive threshold) ----
 def test_a_table_is_selected_per_channel_set():
     assert calibration_for(PARAMS) == CALIBRATION_FILE
     ext = calibration_for(EXT_PARAMS)
@@ -238,7 +238,7 @@ def test_a_table_is_selected_per_channel_set():
     assert tuple(map(tuple, z["channels"])) == EXT_PARAMS.channels
     assert str(z["threshold_mode"]) == "adaptive"
     # the same channels with the fixed threshold still use the extended table
-    assert calibration_for(EngineParams(delays=(1, 2, 4))) == ext
+    assert calibration_for(EngineParams(**dict(EXTENDED, threshold_mode="fixed"))) == ext
     # the paper's channels with the adaptive threshold keep the paper's table
     assert calibration_for(EngineParams(threshold_mode="adaptive")) == CALIBRATION_FILE
     assert calibration_for(EngineParams(scales=(1, 3, 5))) is None

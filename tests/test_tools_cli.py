@@ -307,6 +307,27 @@ def test_bench_model_option_runs_the_daemons_model(monkeypatch, capsys):
     assert seen[-1] == {"delays": (1, 3)}
 
 
+def test_model_option_of_the_tools_selects_a_named_model(backend):
+    """``--model extended`` (flow, frames, eval) gives the daemon's model; a single option
+    such as ``--delays`` then overrides that keyword alone."""
+    import argparse
+
+    from emdflow.params import MODELS
+    from emdflow.tools import add_engine_arguments, engine_kwargs, make_estimator
+
+    parser = argparse.ArgumentParser()
+    add_engine_arguments(parser)
+    assert engine_kwargs(parser.parse_args([])) == {}
+    args = parser.parse_args(["--model", "extended", "--backend", backend])
+    assert engine_kwargs(args) == MODELS["extended"]
+    est = make_estimator(args, 64, 48)
+    assert 15 in est.params.scales and 0.25 in est.params.speeds and est.params.threshold_mode == "adaptive"
+    args = parser.parse_args(["--model", "extended", "--delays", "1,2"])
+    assert engine_kwargs(args) == dict(MODELS["extended"], delays=(1, 2))
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--model", "fast"])
+
+
 # ---------------------------------------------------------------------------------- errors
 
 

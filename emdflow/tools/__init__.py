@@ -73,11 +73,17 @@ def _int_list(text: str) -> tuple[int, ...]:
 def add_engine_arguments(parser) -> None:
     """Add the engine options (backend, device, detector parameters) to an argparse parser.
 
-    Unset options keep :class:`emdflow.FlowEstimator`'s defaults (the paper's model).
+    Unset options keep :class:`emdflow.FlowEstimator`'s defaults (the paper's model), or
+    those of ``--model``; the other options override single keywords of the model.
     """
+    from emdflow.params import MODELS
+
     g = parser.add_argument_group("engine")
     g.add_argument("--backend", choices=("opencl", "numpy"), default="opencl",
                    help="opencl (default, fast) or numpy (the reference, slow)")
+    g.add_argument("--model", choices=tuple(MODELS),
+                   help="named detector model (emdflow.params.MODELS; default: the paper's; "
+                        "extended = the daemon's default)")
     g.add_argument("--device", help="OpenCL device index or name substring (default: EMDFLOW_OPENCL_DEVICE or the first)")
     g.add_argument("--scales", type=_int_list, metavar="LIST", help="odd receptor sizes (default 1,3,5,7,9,11,13)")
     g.add_argument("--threshold", type=float, help="ternary threshold, gray levels (default 5)")
@@ -96,7 +102,10 @@ def engine_kwargs(args) -> dict:
     ToolError
         On a malformed ``--engine-opt``.
     """
-    kw = {}
+    from emdflow.params import MODELS
+
+    model = getattr(args, "model", None)
+    kw = dict(MODELS[model]) if model else {}
     for key in ("scales", "threshold", "prefilter_size", "delays", "delay_scales"):
         value = getattr(args, key, None)
         if value is not None:

@@ -26,8 +26,8 @@ Steps (all deterministic; the committed table is exactly what these commands wri
     python -m emdflow.tools.calibrate_summary evaluate --offset 0.3
     python -m emdflow.tools.calibrate_summary evaluate --random
 
-The extended model (``[engine] model = "extended"``: delays 1, 2, 4 at scale 1, adaptive
-threshold) has its own table, ``emdflow/summary_calibration_extended.npz`` (~5, 5 and 3.5
+The extended model (``[engine] model = "extended"``: delays 1, 2, 4 at scale 1, a scale-15
+channel, adaptive threshold) has its own table, ``emdflow/summary_calibration_extended.npz`` (~5, 5 and 3.5
 minutes of collection)::
 
     python -m emdflow.tools.calibrate_summary collect --model extended --flights 2800 \
