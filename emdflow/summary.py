@@ -96,9 +96,10 @@ Tempering trades ~0.3° along the axes for better off-axis estimates; ``row_expo
 restores the untempered likelihood; with one fine pass instead of two: 9.1 %, 1.33° /
 9.1 %, 2.69° / 9.2 %, 2.42°.) 1–7 px/frame are within 5–12 % and 1–3°; at 9–13 px/frame
 only the top scales fire: 8–18 % and 2–7°, and 13 px/frame 25–40 % (the quality says so:
-frames of quality < 64 have a median error of ~30–40 %). Brick (few, aligned, periodic edges) is the hardest texture. Cost ≈ 0.23 ms
-per call on the 2-core host (IoC guess ~0.03 ms, per-frame curves ~0.04 ms, search
-~0.1 ms); the former 4-level search took ~0.8 ms.
+frames of quality < 64 have a median error of ~30–40 %). Brick (few, aligned, periodic
+edges) is the hardest texture. Cost ≈ 0.29 ms per call on the 2-core host (IoC guess
+~0.03 ms, per-frame curves ~0.04 ms, search ~0.16 ms, of which the second fine pass
+~0.055 ms); the former 4-level search took ~0.8 ms.
 
 Extended model (``scales=(1, 3, …, 13, 15)``, ``delays=(1, 2, 4)``, ``delay_scales=(1,)``,
 adaptive threshold; its own table): 10 speeds (0.25, 0.5, 1, 2, 3, 5, 7, 9, 11, 13
