@@ -7,7 +7,8 @@
  *   (= S_t - S_(t-1), see integral_rows): |now - then| <= 121 * 255 < 2^15, so the
  *   wrapped box sum read as int16 is exact (4 loads from one table instead of 8 from two);
  *   for k = 1 the receptor is the prefiltered pixel itself: P_t - P_(t-D) from the ring
- *   of prefiltered frames (two byte-vector loads; the slow channels of the extended model);
+ *   of prefiltered frames (the slow channels of the extended model), compared byte-wise
+ *   with saturating subtractions, 32 pixels at a time (exceeds32 in common.cl);
  * stored as two bit planes (positive, negative) in the channel's ring slot.
  * Also counts nonzero states per channel, textured pixels and saturated pixels. */
 
