@@ -27,8 +27,8 @@ Steps (all deterministic; the committed table is exactly what these commands wri
     python -m emdflow.tools.calibrate_summary evaluate --random
 
 The extended model (``[engine] model = "extended"``: delays 1, 2, 4 at scale 1, a scale-15
-channel, adaptive threshold) has its own table, ``emdflow/summary_calibration_extended.npz`` (~5, 5 and 3.5
-minutes of collection)::
+channel, adaptive threshold) has its own table, ``emdflow/summary_calibration_extended.npz``
+(~3.5, 3.5 and 3 minutes of collection on a quiet machine)::
 
     python -m emdflow.tools.calibrate_summary collect --model extended --flights 2800 \
         --frames 8 --seed 20240606 --out /tmp/emdflow_calib_ext.npz
