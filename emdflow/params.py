@@ -34,8 +34,8 @@ __all__ = ["EngineParams", "gaussian_weights", "ORIENTATION_BINS", "MODELS"]
 #: published model (seven one-frame channels, fixed threshold); ``"extended"`` adds the
 #: delays 2 and 4 at scale 1 (1/2 and 1/4 px/frame: hovering drift), a scale-15 channel
 #: (the top of the 1–13 px/frame range is then inside a channel's band, not at the end
-#: of the fastest one: 13 px/frame reads within 15 % instead of 33 %, for ~4 % more engine
-#: time) and the contrast-adaptive threshold. The daemon, the benchmark and the
+#: of the fastest one: 13 px/frame reads within 15 % instead of 33 %, for 5–7 % more
+#: engine time) and the contrast-adaptive threshold. The daemon, the benchmark and the
 #: calibration tools all use this.
 MODELS = {
     "paper": {},

@@ -71,7 +71,8 @@ __kernel void prefilter_columns(__global const uchar *frame, __global uchar *P, 
         colsum += p;
         STORE_US16(S + (y + 1) * SSTRIDE, colsum);
         _Pragma("unroll") for (int j = 0; j < 2 * RADIUS; j++) h[j] = h[j + 1];
-        const int next = y + RADIUS + 1 < H - 1 ? y + RADIUS + 1 : H - 1;
-        h[2 * RADIUS] = convert_uchar16(horizontal16(frame + next * W, x0));
+        /* past the last row the window repeats it (clamped reads): no pass to recompute */
+        if (y + RADIUS + 1 < H)
+            h[2 * RADIUS] = convert_uchar16(horizontal16(frame + (y + RADIUS + 1) * W, x0));
     }
 }
