@@ -57,6 +57,11 @@ class FlowEstimator:
         frame by frame (see :class:`emdflow.EngineParams`).
     adaptive_gain, threshold_min, threshold_max : float, optional
         Gain and limits of the adaptive threshold, gray levels.
+    brightness_compensation : bool, optional
+        Luminance adaptation (default False, the paper): each channel's receptor change
+        is reduced by the frame's mean brightness change over the channel's delay (at most
+        θ), so an exposure drift does not favour one polarity of the states (see
+        :class:`emdflow.EngineParams`).
     device : str or int, optional
         OpenCL device: an index into :func:`emdflow.opencl_devices` or a substring of the
         platform/device name. Default: the ``EMDFLOW_OPENCL_DEVICE`` environment variable,
@@ -93,6 +98,7 @@ class FlowEstimator:
         adaptive_gain: float = 0.4,
         threshold_min: float = 1.5,
         threshold_max: float = 10.0,
+        brightness_compensation: bool = False,
         device=None,
     ):
         for name, value in (("width", width), ("height", height)):
@@ -114,6 +120,7 @@ class FlowEstimator:
             adaptive_gain=adaptive_gain,
             threshold_min=threshold_min,
             threshold_max=threshold_max,
+            brightness_compensation=bool(brightness_compensation),
         )
         if backend == "numpy":
             self._engine = ReferenceEngine(self.width, self.height, self.params)

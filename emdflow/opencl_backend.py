@@ -178,6 +178,7 @@ class _Layout:
             "P_SIZE": self.P_SIZE, "P_SLOTS": self.P_SLOTS,
             "SSTRIDE": self.SSTRIDE, "SPAD": self.SPAD, "SAT_SLOTS": self.SAT_SLOTS, "DSAT": self.DSAT,
             "NCH": len(chans),
+            "COMPENSATE": int(params.brightness_compensation), "NSTRIPS": _ceil(width, 16),
             "CH_K": join(k for k, _ in chans), "CH_D": join(d for _, d in chans),
             "CH_RING": join(self.rings), "CH_BASE": join(self.bases),
             "RADIUS": len(w) // 2, "WEIGHTS": join(w),
@@ -313,6 +314,9 @@ class OpenCLEngine:
         self.dsat_buf = cl.Buffer(ctx, mf.READ_WRITE, (2 * lay.sat_elems if lay.DSAT else 0) + tail)
         self.planes = cl.Buffer(ctx, mf.READ_WRITE, 4 * 2 * lay.plane_slots * lay.plane_words)
         self.result = cl.Buffer(ctx, mf.READ_WRITE, lay.result_bytes)
+        # brightness compensation: per slot of P the frame's pixel sum, then the
+        # prefilter's per-strip sums (see prefilter.cl, integral.cl)
+        self.bright_buf = cl.Buffer(ctx, mf.READ_WRITE, 4 * lay.P_SLOTS * (1 + _ceil(width, 16)))
         debug_words = 4 * len(params.channels) * height * lay.NWP if debug else 1
         self.debug_buf = cl.Buffer(ctx, mf.READ_WRITE, 4 * debug_words)
         for buf in (self.frame_buf, self.p_buf, self.sat_buf, self.dsat_buf):
@@ -335,10 +339,11 @@ class OpenCLEngine:
         # buffer arguments are set once; per frame only the scalars change (pyopencl's
         # Kernel.__call__ would set every argument again: ~10 us per launch)
         zero = np.int32(0)
-        self._k_prefilter.set_args(self.frame_buf, self.p_buf, self.sat_buf, self.result, zero, zero)
-        self._k_integral.set_args(self.sat_buf, self.dsat_buf, zero)
+        self._k_prefilter.set_args(self.frame_buf, self.p_buf, self.sat_buf, self.result, zero, zero,
+                                   self.bright_buf)
+        self._k_integral.set_args(self.sat_buf, self.dsat_buf, zero, self.bright_buf, zero)
         self._k_states.set_args(self.sat_buf, self.dsat_buf, self.planes, self.p_buf, self.frame_buf, self.result,
-                                zero, zero)
+                                zero, zero, self.bright_buf)
         self._k_evd.set_args(self.planes, self.result, self.debug_buf, self.sat_buf, self.p_buf, zero)
         self._set_prefilter, self._set_integral, self._set_states, self._set_evd = (
             _int_arg_setter(k, i) for k, i in ((self._k_prefilter, 4), (self._k_integral, 2),
@@ -375,6 +380,7 @@ class OpenCLEngine:
         self._set_prefilter(4, slot)
         self._set_prefilter(5, p_slot)
         self._set_integral(2, slot)
+        self._set_integral(4, p_slot)
         self._set_states(6, t)
         self._set_states(7, int(self.theta_q))
         self._set_evd(5, t)

@@ -40,7 +40,8 @@ __all__ = ["EngineParams", "gaussian_weights", "ORIENTATION_BINS", "MODELS"]
 MODELS = {
     "paper": {},
     "extended": {"scales": (1, 3, 5, 7, 9, 11, 13, 15), "delays": (1, 2, 4),
-                 "delay_scales": (1,), "threshold_mode": "adaptive"},
+                 "delay_scales": (1,), "threshold_mode": "adaptive",
+                 "brightness_compensation": True},
 }
 
 #: Orientation bins over 180° used to summarise the gradient direction of detections.
@@ -83,6 +84,12 @@ def gaussian_weights(size: int, total: int = 256) -> tuple[int, ...]:
     return tuple(int(v) for v in w)
 
 
+def _trunc_div(a: int, b: int) -> int:
+    """Integer division truncated towards zero, like C's ``/`` (Python's ``//`` floors)."""
+    q = abs(a) // abs(b)
+    return q if (a >= 0) == (b > 0) else -q
+
+
 @dataclasses.dataclass(frozen=True)
 class EngineParams:
     """Parameters of the Elementary Velocity Detector (see ``spec/template-model.md``).
@@ -117,6 +124,15 @@ class EngineParams:
         on the bundled photographs at full contrast (θ = 5 is the paper's) and follow a
         contrast drop down to 1.5 (≈ 3σ of the prefiltered frame-difference noise for
         sensor noise σ = 2).
+    brightness_compensation : bool
+        Luminance adaptation (off in the paper's model): before thresholding, each
+        channel's receptor change ``R(t) − R(t−D)`` is reduced by the change of the whole
+        prefiltered frame's mean brightness over the same ``D`` frames, at most ``θ`` in
+        either direction (:meth:`brightness_offset`). An exposure drift (or a small
+        auto-exposure step) then no longer lowers the threshold of one polarity and raises
+        the other's: at a drift of 20 % over a flight, the slow channels' changes of 1–2 px
+        of motion and the drift are of the same size. Larger steps still light up the
+        states and are caught by the exposure-step test.
     """
 
     scales: tuple[int, ...] = (1, 3, 5, 7, 9, 11, 13)
@@ -129,6 +145,7 @@ class EngineParams:
     adaptive_gain: float = 0.4
     threshold_min: float = 1.5
     threshold_max: float = 10.0
+    brightness_compensation: bool = False
 
     def __post_init__(self):
         if self.threshold_mode not in ("fixed", "adaptive"):
@@ -192,6 +209,20 @@ class EngineParams:
         """Integer threshold on a k×k box-sum difference: ``(θq · k²) >> 8`` = ``floor(θ · k²)``."""
         q = self.threshold_q(self.threshold) if theta_q is None else int(theta_q)
         return (q * k * k) >> 8
+
+    def brightness_offset(self, k: int, box_threshold: int, brightness_change: int, pixels: int) -> int:
+        """Offset subtracted from a k×k box-sum change before thresholding (box units).
+
+        ``brightness_change`` is the change of the prefiltered frame's pixel sum over the
+        channel's delay (``pixels`` pixels). The mean change per pixel, in 1/256 gray
+        levels, times ``k²``, both divisions truncated towards zero (C's ``/``, which the
+        kernel uses), clamped to ``±box_threshold``. 0 unless ``brightness_compensation``.
+        """
+        if not self.brightness_compensation:
+            return 0
+        per_pixel_q = _trunc_div(int(brightness_change) * 256, int(pixels))
+        offset = _trunc_div(per_pixel_q * k * k, 256)
+        return max(-box_threshold, min(box_threshold, offset))
 
     def texture_threshold_for(self, theta_q: int) -> int:
         """Threshold on ``|ΔxP| + |ΔyP|`` for a textured pixel: ``floor(2θ)``."""

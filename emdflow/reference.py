@@ -364,6 +364,7 @@ class ReferenceEngine:
     def reset(self) -> None:
         self.theta_q = self.params.threshold_q(self.params.threshold)  # threshold of the next frame
         self._p_history: list[np.ndarray] = []  # newest last, up to max_delay + 1
+        self._brightness: list[int] = []  # their pixel sums (brightness compensation)
         self._state_history = {ch: [] for ch in self.params.channels}  # newest last
         self.frame_count = 0
         self.states: list[np.ndarray] = []
@@ -375,6 +376,9 @@ class ReferenceEngine:
         p_now = prefilter(frame, prm.weights)
         self._p_history.append(p_now)
         del self._p_history[: -(prm.max_delay + 1)]
+        # the prefiltered frame's pixel sum: the brightness the compensation follows
+        self._brightness.append(int(p_now.sum(dtype=np.int64)) if prm.brightness_compensation else 0)
+        del self._brightness[: -(prm.max_delay + 1)]
         zeros = np.zeros(frame.shape, np.int8)
         pos = {0: [], 1: []}
         neg = {0: [], 1: []}
@@ -384,7 +388,10 @@ class ReferenceEngine:
         for c, (k, d) in enumerate(prm.channels):
             if len(self._p_history) > d:
                 change = receptor_change(p_now, self._p_history[-1 - d], k)
-                s_now = ternary_states(change, prm.box_threshold(k, self.theta_q))
+                T = prm.box_threshold(k, self.theta_q)
+                offset = prm.brightness_offset(k, T, self._brightness[-1] - self._brightness[-1 - d],
+                                               p_now.size)
+                s_now = ternary_states(change - offset, T)
             else:
                 s_now = zeros  # no frame D steps back yet: no change is known
             hist = self._state_history[(k, d)]

@@ -11,6 +11,8 @@
  *   DSAT            1 if some channel has D = 1 and 1 < k <= 11: integral_rows also writes the
  *                   difference table S_t - S_(t-1) that ternary_states reads for them
  *   NCH             channels (scale, delay), sorted by increasing speed
+ *   COMPENSATE      1 for brightness compensation (EngineParams.brightness_compensation)
+ *   NSTRIPS         16-column strips of the prefilter (ceil(W / 16))
  *   CH_K, CH_D, CH_RING, CH_BASE   per-channel scale, delay, state ring length (2D + 1)
  *                   and first plane slot (the threshold theta_q = round(256 theta) is a
  *                   kernel argument: it adapts frame by frame in the adaptive mode)

@@ -7,7 +7,9 @@
  * frame's table (slot - 1, finished a frame ago): dsat = S_t - S_(t-1), the summed-area
  * table of P_t - P_(t-1) (uint16, wrapping), from which ternary_states takes the delay-1
  * differences of the small scales in 4 loads instead of 8. At t = 0 (and after reset())
- * the previous slot is stale or zero: nothing reads dsat before t = 1. */
+ * the previous slot is stale or zero: nothing reads dsat before t = 1.
+ * With COMPENSATE, work item 0 adds up the prefilter's strip sums into the frame's pixel
+ * sum of P, kept per slot of P (bright[0 .. P_SLOTS - 1]) for ternary_states. */
 #define EMD_Z (ushort16)(0)
 #define SHL1(v) __builtin_shufflevector(v, EMD_Z, 16, 0, 1, 2, 3, 4, 5, 6, 16, 8, 9, 10, 11, 12, 13, 14)
 #define SHL2(v) __builtin_shufflevector(v, EMD_Z, 16, 16, 0, 1, 2, 3, 4, 5, 16, 16, 8, 9, 10, 11, 12, 13)
@@ -15,10 +17,18 @@
 #define LOW7(v) __builtin_shufflevector(v, EMD_Z, 16, 16, 16, 16, 16, 16, 16, 16, 7, 7, 7, 7, 7, 7, 7, 7)
 #define ALL15(v) __builtin_shufflevector(v, v, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15)
 
-__kernel void integral_rows(__global ushort *sat, __global ushort *dsat, int slot)
+__kernel void integral_rows(__global ushort *sat, __global ushort *dsat, int slot,
+                            __global uint *bright, int p_slot)
 {
     const int y = get_global_id(0);
     if (y >= H) return;  /* the global size is padded to whole work-groups */
+#if COMPENSATE
+    if (y == 0) {  /* the frame's pixel sum of P from the prefilter's strip sums */
+        uint total = 0;
+        for (int j = 0; j < NSTRIPS; j++) total += bright[P_SLOTS + p_slot * NSTRIPS + j];
+        bright[p_slot] = total;
+    }
+#endif
     __global ushort *row = sat + slot * SAT_SIZE + (y + 1) * SSTRIDE + SPAD + 1;
 #if DSAT
     const int prev = slot == 0 ? SAT_SLOTS - 1 : slot - 1;

@@ -5,6 +5,7 @@
  * of the current row from that window (no round trip through memory), and the running
  * column sums (uint16 arithmetic wraps; every box sum taken from the table
  * is below 2^16, so box sums stay exact).
+ * With COMPENSATE, each strip also stores its pixel sum of P (brightness compensation).
  * The taps are symmetric (w[i] == w[2 RADIUS - i]): mirror pairs are added first and
  * multiplied once. Sums stay below 2^16 (255 * 256 + 128), so ushort lanes are exact. */
 
@@ -40,7 +41,7 @@ inline ushort16 horizontal16(__global const uchar *row, int x0)
 }
 
 __kernel void prefilter_columns(__global const uchar *frame, __global uchar *P, __global ushort *sat,
-                                __global char *result, int slot, int p_slot)
+                                __global char *result, int slot, int p_slot, __global uint *bright)
 {
     /* first, zero this work item's share of the frame's counters and histograms (the later
      * stages add to them atomically): cheaper than a separate fill command */
@@ -61,6 +62,12 @@ __kernel void prefilter_columns(__global const uchar *frame, __global uchar *P, 
     _Pragma("unroll") for (int j = 0; j < 2 * RADIUS + 1; j++)
         h[j] = convert_uchar16(horizontal16(frame + CLAMPI(j - RADIUS, 0, H - 1) * W, x0));
     ushort16 colsum = (ushort16)(0);
+#if COMPENSATE
+    /* the strip's pixel sum, from the wrapping column sums every 256 rows (a difference
+     * of at most 256 * 255 < 2^16 is exact in ushort): no per-row cost */
+    ushort16 mark = (ushort16)(0);
+    uint8 sum_lo = (uint8)(0), sum_hi = (uint8)(0);  /* 256-bit vectors only (see common.cl) */
+#endif
     for (int y = 0; y < H; y++) {
         ushort16 acc = (ushort16)(128) + PF_W[RADIUS] * convert_ushort16(h[RADIUS]);
         _Pragma("unroll") for (int j = 0; j < RADIUS; j++)
@@ -70,9 +77,26 @@ __kernel void prefilter_columns(__global const uchar *frame, __global uchar *P, 
         STORE_UC16(Pout + y * PSTRIDE, convert_uchar16(p));
         colsum += p;
         STORE_US16(S + (y + 1) * SSTRIDE, colsum);
+#if COMPENSATE
+        if ((y & 255) == 255 || y == H - 1) {
+            const ushort16 rows = colsum - mark;
+            sum_lo += convert_uint8(rows.lo);
+            sum_hi += convert_uint8(rows.hi);
+            mark = colsum;
+        }
+#endif
         _Pragma("unroll") for (int j = 0; j < 2 * RADIUS; j++) h[j] = h[j + 1];
         /* past the last row the window repeats it (clamped reads): no pass to recompute */
         if (y + RADIUS + 1 < H)
             h[2 * RADIUS] = convert_uchar16(horizontal16(frame + (y + RADIUS + 1) * W, x0));
     }
+#if COMPENSATE
+    /* lanes past W hold clamped copies: not part of the frame */
+    const int8 lane = (int8)(0, 1, 2, 3, 4, 5, 6, 7);
+    sum_lo &= as_uint8(lane < (W - x0));
+    sum_hi &= as_uint8(lane < (W - x0 - 8));
+    const uint8 s8 = sum_lo + sum_hi;
+    const uint4 s4 = s8.lo + s8.hi;
+    bright[P_SLOTS + p_slot * NSTRIPS + x0 / 16] = s4.x + s4.y + s4.z + s4.w;
+#endif
 }

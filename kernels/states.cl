@@ -9,7 +9,9 @@
  *   for k = 1 the receptor is the prefiltered pixel itself: P_t - P_(t-D) from the ring
  *   of prefiltered frames (the slow channels of the extended model), compared byte-wise
  *   with saturating subtractions, 32 pixels at a time (exceeds32 in common.cl);
- * stored as two bit planes (positive, negative) in the channel's ring slot.
+ * stored as two bit planes (positive, negative) in the channel's ring slot. With
+ * COMPENSATE the two polarities have thresholds T + off and T - off (brightness
+ * compensation: off follows the frame's mean brightness change over D frames).
  * Also counts nonzero states per channel, textured pixels and saturated pixels. */
 
 inline ushort16 box16(__global const ushort *S, int y, int x, int r)
@@ -23,7 +25,7 @@ inline ushort16 box16(__global const ushort *S, int y, int x, int r)
 
 __kernel void ternary_states(__global const ushort *sat, __global const ushort *dsat, __global uint *planes,
                              __global const uchar *P, __global const uchar *frame,
-                             __global char *result, int t, int theta_q)
+                             __global char *result, int t, int theta_q, __global const uint *bright)
 {
     const int y = get_global_id(0);
     if (y >= H) return;  /* the global size is padded to whole work-groups */
@@ -35,7 +37,7 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
     #pragma unroll
     for (int c = 0; c < NCH; c++) {
         const int k = CK[c], r = k / 2, D = CD[c];
-        const ushort T = (ushort)((theta_q * k * k) >> 8);   /* floor(theta k^2) */
+        const int T = (theta_q * k * k) >> 8;   /* floor(theta k^2) */
         const int slot = CBASE[c] + t % CRING[c];
         __global uint *pos_row = planes + PLANE_ROW(slot, 0, y);
         __global uint *neg_row = planes + PLANE_ROW(slot, 1, y);
@@ -46,6 +48,20 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
         /* (S_then only for k > 1: the tables go back as far as those channels' delays) */
         __global const ushort *S_then = sat + pos_mod(t - D, SAT_SLOTS) * SAT_SIZE;
         __global const uchar *P_then = P + pos_mod(t - D, P_SLOTS) * P_SIZE;
+        /* thresholds of the two polarities: T each, or with brightness compensation
+         * T + off and T - off, off = the mean brightness change over D frames (k^2 box
+         * units, truncated like EngineParams.brightness_offset) clamped to +-T */
+        int Tp = T, Tn = T;
+#if COMPENSATE
+        {
+            const long change = (long)bright[t % P_SLOTS] - (long)bright[pos_mod(t - D, P_SLOTS)];
+            const long per_pixel_q = change * 256 / ((long)W * H);
+            int off = (int)(per_pixel_q * (k * k) / 256);
+            off = off > T ? T : (off < -T ? -T : off);
+            Tp = T + off;
+            Tn = T - off;
+        }
+#endif
         /* words from i_edge on hold pixels past W - 1 - r; word 0 holds x < r */
         const int i_edge = (W - r) / 32;
         int changed = 0, brightening = 0;
@@ -55,12 +71,12 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
             if (k == 1) {
                 /* a 1x1 receptor is the prefiltered pixel itself: P_t - P_(t-D), byte-wise */
                 __global const uchar *pn = P_now + y * PSTRIDE + PPAD + x, *pt = P_then + y * PSTRIDE + PPAD + x;
-                const uchar T8 = T > 255 ? 255 : (uchar)T;   /* |P_t - P_(t-D)| <= 255 */
-                pw = exceeds32(pn, pt, T8);
-                nw = exceeds32(pt, pn, T8);
+                /* |P_t - P_(t-D)| <= 255 */
+                pw = exceeds32(pn, pt, Tp > 255 ? 255 : (uchar)Tp);
+                nw = exceeds32(pt, pn, Tn > 255 ? 255 : (uchar)Tn);
             } else if (k <= 11) {
                 /* |now - then| <= 121 * 255 < 2^15: the int16 difference is exact */
-                const short Ts = T > 32767 ? 32767 : (short)T;
+                const short Tps = Tp > 32767 ? 32767 : (short)Tp, Tns = Tn > 32767 ? 32767 : (short)Tn;
                 short16 d0, d1;
                 if (D == 1) {
                     d0 = as_short16(box16(dsat, y, x, r));
@@ -69,18 +85,19 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
                     d0 = as_short16(box16(S_now, y, x, r) - box16(S_then, y, x, r));
                     d1 = as_short16(box16(S_now, y, x + 16, r) - box16(S_then, y, x + 16, r));
                 }
-                pw = pack32(d0 > Ts, d1 > Ts);
-                nw = pack32(d0 < (short)-Ts, d1 < (short)-Ts);
+                pw = pack32(d0 > Tps, d1 > Tps);
+                nw = pack32(d0 < (short)-Tns, d1 < (short)-Tns);
             } else {
                 const ushort16 now0 = box16(S_now, y, x, r), then0 = box16(S_then, y, x, r);
                 const ushort16 now1 = box16(S_now, y, x + 16, r), then1 = box16(S_then, y, x + 16, r);
                 /* now - then > T  <=>  sat(sat(now - T) - then) != 0 (likewise negative) */
-                const ushort16 Tv = (ushort16)(T);
+                const ushort16 Tpv = (ushort16)((ushort)(Tp > 65535 ? 65535 : Tp));
+                const ushort16 Tnv = (ushort16)((ushort)(Tn > 65535 ? 65535 : Tn));
                 const short16 z = (short16)(0);
-                pw = ~pack32(as_short16(subs_u16(subs_u16(now0, Tv), then0)) == z,
-                             as_short16(subs_u16(subs_u16(now1, Tv), then1)) == z);
-                nw = ~pack32(as_short16(subs_u16(subs_u16(then0, Tv), now0)) == z,
-                             as_short16(subs_u16(subs_u16(then1, Tv), now1)) == z);
+                pw = ~pack32(as_short16(subs_u16(subs_u16(now0, Tpv), then0)) == z,
+                             as_short16(subs_u16(subs_u16(now1, Tpv), then1)) == z);
+                nw = ~pack32(as_short16(subs_u16(subs_u16(then0, Tnv), now0)) == z,
+                             as_short16(subs_u16(subs_u16(then1, Tnv), now1)) == z);
             }
             if (i == 0 || i >= i_edge) {
                 const uint valid = bit_range(r - x, W - 1 - r - x);

@@ -114,6 +114,26 @@ def test_parameter_variants(params):
     assert _compare(width, height, frames, params) > 0
 
 
+@pytest.mark.parametrize("portable", [False, True], ids=["x86", "portable"])
+@pytest.mark.parametrize("size", [(89, 67), (75, 301)])
+def test_brightness_compensation_is_exact(monkeypatch, size, portable):
+    """An exposure drift, a small step (compensated) and a large one (clamped to ±θ):
+    the same states and output. 301 rows: the prefilter's strip sums cross its 256-row
+    flush of the wrapping column sums."""
+    if portable:
+        monkeypatch.setenv(opencl_backend.PORTABLE_ENV, "1")
+    width, height = size
+    params = EngineParams(**MODELS["extended"])
+    assert params.brightness_compensation
+    flight = CameraFlight("gravel", width=width, height=height, flow=(0.4, -0.3), noise_sigma=2,
+                          exposure_drift=-0.35, drift_frames=20, seed=8)
+    frames = []
+    for t in range(20):
+        frame = flight.render(t).astype(int) + (4 if t >= 13 else 0) + (40 if t >= 17 else 0)
+        frames.append(np.clip(frame, 0, 255).astype(np.uint8))
+    assert _compare(width, height, frames, params) > 0
+
+
 def test_full_size_flight_and_reset():
     width, height = 320, 240
     flight = CameraFlight("grass", width=width, height=height, flow=(-4.5, 2.0), noise_sigma=2, seed=5)
