@@ -6,7 +6,7 @@ import numpy as np
 
 from .field import FlowField
 from .params import EngineParams
-from .reference import STAT_BRIGHTENING, STAT_FIRST_CHANGED, ReferenceEngine
+from .reference import STAT_BRIGHTENING, STAT_BRIGHTNESS, STAT_FIRST_CHANGED, ReferenceEngine
 
 __all__ = ["FlowEstimator", "BACKENDS"]
 
@@ -14,12 +14,18 @@ BACKENDS = ("opencl", "numpy")
 
 #: A frame where at least this share of the finest receptors changed, and nearly all the
 #: same way (brightening share above 1 - POLARITY or below POLARITY), is a global
-#: brightness step (auto-exposure, lights), not motion.
+#: brightness step (auto-exposure, lights), not motion. With brightness compensation, so
+#: is a frame whose mean brightness moved by more than θ since the previous frame.
 STEP_CHANGED = 0.2
 STEP_POLARITY = 0.1
 
 
-def _is_brightness_step(stats, params, pixels: int) -> bool:
+def _is_brightness_step(stats, params, pixels: int, previous_brightness, theta_q: int) -> bool:
+    # with brightness compensation the states no longer show a step (its mean is taken
+    # out, what is left of a gain step has both polarities): the mean itself tells
+    if (params.brightness_compensation and previous_brightness is not None
+            and abs(int(stats[STAT_BRIGHTNESS]) - previous_brightness) > theta_q):
+        return True
     c = params.channels.index((params.scales[0], 1))
     changed = int(stats[STAT_FIRST_CHANGED + c])
     if changed < STEP_CHANGED * pixels:
@@ -130,6 +136,7 @@ class FlowEstimator:
             self._engine = OpenCLEngine(self.width, self.height, self.params, device=device)
         self._frames = 0
         self._last_step = None
+        self._last_brightness = None
 
     def _check(self, frame) -> np.ndarray:
         expected = f"a 2-D uint8 array of shape ({self.height}, {self.width})"
@@ -164,8 +171,10 @@ class FlowEstimator:
         # the codes stay behind decode() (bit-packed on OpenCL) until the dense field is read
         packed, stats, hist, positions = self._engine.step_packed(frame)
         self._frames += 1
-        if _is_brightness_step(stats, self.params, self.width * self.height):
+        if _is_brightness_step(stats, self.params, self.width * self.height, self._last_brightness,
+                               self._engine.last_theta_q):
             self._last_step = self._frames
+        self._last_brightness = int(stats[STAT_BRIGHTNESS])
         # the step's states sit in the templates of this frame and the next two
         in_templates = self._last_step is not None and self._frames - self._last_step < 3
         return FlowField(None, None, stats, hist, self.params, self._frames, positions=positions,
@@ -176,6 +185,7 @@ class FlowEstimator:
         self._engine.reset()
         self._frames = 0
         self._last_step = None
+        self._last_brightness = None
 
     @property
     def frames_seen(self) -> int:

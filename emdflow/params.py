@@ -127,12 +127,12 @@ class EngineParams:
     brightness_compensation : bool
         Luminance adaptation (off in the paper's model): before thresholding, each
         channel's receptor change ``R(t) − R(t−D)`` is reduced by the change of the whole
-        prefiltered frame's mean brightness over the same ``D`` frames, at most ``θ`` in
-        either direction (:meth:`brightness_offset`). An exposure drift (or a small
-        auto-exposure step) then no longer lowers the threshold of one polarity and raises
-        the other's: at a drift of 20 % over a flight, the slow channels' changes of 1–2 px
-        of motion and the drift are of the same size. Larger steps still light up the
-        states and are caught by the exposure-step test.
+        prefiltered frame's mean brightness over the same ``D`` frames
+        (:meth:`brightness_offset`). An exposure drift then no longer lowers the threshold
+        of one polarity and raises the other's: at a drift of 20 % over a flight, the slow
+        channels' changes of 1–2 px of motion and the drift are of the same size. What is
+        left of a gain step (the change is proportional to brightness, the offset is its
+        mean) is caught by the exposure-step test.
     """
 
     scales: tuple[int, ...] = (1, 3, 5, 7, 9, 11, 13)
@@ -210,19 +210,18 @@ class EngineParams:
         q = self.threshold_q(self.threshold) if theta_q is None else int(theta_q)
         return (q * k * k) >> 8
 
-    def brightness_offset(self, k: int, box_threshold: int, brightness_change: int, pixels: int) -> int:
+    def brightness_offset(self, k: int, brightness_change: int, pixels: int) -> int:
         """Offset subtracted from a k×k box-sum change before thresholding (box units).
 
         ``brightness_change`` is the change of the prefiltered frame's pixel sum over the
         channel's delay (``pixels`` pixels). The mean change per pixel, in 1/256 gray
         levels, times ``k²``, both divisions truncated towards zero (C's ``/``, which the
-        kernel uses), clamped to ``±box_threshold``. 0 unless ``brightness_compensation``.
+        kernel uses). 0 unless ``brightness_compensation``.
         """
         if not self.brightness_compensation:
             return 0
         per_pixel_q = _trunc_div(int(brightness_change) * 256, int(pixels))
-        offset = _trunc_div(per_pixel_q * k * k, 256)
-        return max(-box_threshold, min(box_threshold, offset))
+        return _trunc_div(per_pixel_q * k * k, 256)
 
     def texture_threshold_for(self, theta_q: int) -> int:
         """Threshold on ``|ΔxP| + |ΔyP|`` for a textured pixel: ``floor(2θ)``."""

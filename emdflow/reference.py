@@ -46,6 +46,7 @@ __all__ = [
     "STAT_SATURATED",
     "STAT_BRIGHTENING",
     "STAT_CONTRAST",
+    "STAT_BRIGHTNESS",
     "STAT_FIRST_CHANGED",
     "POSITION_BINS",
 ]
@@ -60,7 +61,9 @@ STAT_TEXTURED = 2  #: sampled pixels with gradient above the threshold (see summ
 STAT_SATURATED = 3  #: sampled pixels at 0..2 or 253..255
 STAT_BRIGHTENING = 4  #: positive states of the finest one-frame channel (brightness steps)
 STAT_CONTRAST = 5  #: sum of |ΔxP| + |ΔyP| over the textured statistic's sample
-STAT_FIRST_CHANGED = 6  #: then one count of nonzero states per channel
+#: mean of the prefiltered frame, 1/256 gray levels (with brightness compensation, else 0)
+STAT_BRIGHTNESS = 6
+STAT_FIRST_CHANGED = 7  #: then one count of nonzero states per channel
 #: Detections are also counted by position: x (horizontal) or y (vertical) in this many bins.
 POSITION_BINS = 16
 
@@ -269,6 +272,8 @@ def summary_statistics(
     * saturated pixels: on even rows, raw value ≤ 2 or ≥ 253;
     * positive states of the finest one-frame channel (a global brightness step turns
       most of them on at once);
+    * the prefiltered frame's mean in 1/256 gray levels, with brightness compensation
+      (the exposure-step test compares it frame to frame), else 0;
     * nonzero states per channel;
     * the detection histogram ``hist[axis, code, orientation]``: detections on every
       ``EngineParams.evidence_row_step(H)``-th row and
@@ -299,6 +304,8 @@ def summary_statistics(
         grad = (gx + gy)[1::2]  # rows 2, 4, …
         stats[STAT_TEXTURED] = np.count_nonzero(grad > params.texture_threshold_for(q))
         stats[STAT_CONTRAST] = int(grad.sum())
+    if params.brightness_compensation:
+        stats[STAT_BRIGHTNESS] = int(p_now.sum(dtype=np.int64)) * 256 // (H * W)
     even = frame[0::2]
     stats[STAT_SATURATED] = np.count_nonzero((even <= 2) | (even >= 253))
     for c, s in enumerate(states_now):
@@ -388,10 +395,10 @@ class ReferenceEngine:
         for c, (k, d) in enumerate(prm.channels):
             if len(self._p_history) > d:
                 change = receptor_change(p_now, self._p_history[-1 - d], k)
-                T = prm.box_threshold(k, self.theta_q)
-                offset = prm.brightness_offset(k, T, self._brightness[-1] - self._brightness[-1 - d],
-                                               p_now.size)
-                s_now = ternary_states(change - offset, T)
+                offset = prm.brightness_offset(k, self._brightness[-1] - self._brightness[-1 - d], p_now.size)
+                s_now = ternary_states(change - offset, prm.box_threshold(k, self.theta_q))
+                if offset:  # no receptor where the block leaves the frame (change 0 there)
+                    s_now[box_sums(np.ones(frame.shape, np.int8), k) == 0] = 0
             else:
                 s_now = zeros  # no frame D steps back yet: no change is known
             hist = self._state_history[(k, d)]

@@ -11,7 +11,9 @@
  *   with saturating subtractions, 32 pixels at a time (exceeds32 in common.cl);
  * stored as two bit planes (positive, negative) in the channel's ring slot. With
  * COMPENSATE the two polarities have thresholds T + off and T - off (brightness
- * compensation: off follows the frame's mean brightness change over D frames).
+ * compensation: off follows the frame's mean brightness change over D frames; either
+ * threshold may then be negative, which the byte and 16-bit compares turn into the
+ * complement of the opposite compare).
  * Also counts nonzero states per channel, textured pixels and saturated pixels. */
 
 inline ushort16 box16(__global const ushort *S, int y, int x, int r)
@@ -23,6 +25,30 @@ inline ushort16 box16(__global const ushort *S, int y, int x, int r)
     return LOAD_US16(bot + w) - LOAD_US16(top + w) - LOAD_US16(bot) + LOAD_US16(top);
 }
 
+/* bits of now - then > T for 32 pixels of P (any sign of T: with brightness compensation
+ * a threshold T -+ offset can be negative) */
+inline uint above32_bytes(__global const uchar *now, __global const uchar *then, int T)
+{
+    if (T >= 0) return exceeds32(now, then, (uchar)(T > 255 ? 255 : T));
+    /* now - then > T  <=>  not (then - now > -T - 1) */
+    return ~exceeds32(then, now, (uchar)(-T - 1 > 255 ? 255 : -T - 1));
+}
+
+/* the same for two 16-lane halves of 16-bit box sums */
+inline uint above32_u16(ushort16 now0, ushort16 then0, ushort16 now1, ushort16 then1, int T)
+{
+    const short16 z = (short16)(0);
+    if (T >= 0) {
+        /* now - then > T  <=>  sat(sat(now - T) - then) != 0 */
+        const ushort16 Tv = (ushort16)((ushort)(T > 65535 ? 65535 : T));
+        return ~pack32(as_short16(subs_u16(subs_u16(now0, Tv), then0)) == z,
+                       as_short16(subs_u16(subs_u16(now1, Tv), then1)) == z);
+    }
+    const ushort16 Tv = (ushort16)((ushort)(-T - 1 > 65535 ? 65535 : -T - 1));
+    return pack32(as_short16(subs_u16(subs_u16(then0, Tv), now0)) == z,
+                  as_short16(subs_u16(subs_u16(then1, Tv), now1)) == z);
+}
+
 __kernel void ternary_states(__global const ushort *sat, __global const ushort *dsat, __global uint *planes,
                              __global const uchar *P, __global const uchar *frame,
                              __global char *result, int t, int theta_q, __global const uint *bright)
@@ -32,6 +58,10 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
     __global int *stats = (__global int *)(result + STATS_OFFSET);
     __global const ushort *S_now = sat + (t % SAT_SLOTS) * SAT_SIZE;
     __global const uchar *P_now = P + (t % P_SLOTS) * P_SIZE;
+#if COMPENSATE
+    if (y == 0)  /* the frame's mean brightness, 1/256 gray levels (exposure-step test) */
+        stats[STAT_BRIGHTNESS] = (int)((ulong)bright[t % P_SLOTS] * 256 / ((ulong)W * H));
+#endif
 
     /* unrolled: k, r and the load offsets become constants */
     #pragma unroll
@@ -48,16 +78,16 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
         /* (S_then only for k > 1: the tables go back as far as those channels' delays) */
         __global const ushort *S_then = sat + pos_mod(t - D, SAT_SLOTS) * SAT_SIZE;
         __global const uchar *P_then = P + pos_mod(t - D, P_SLOTS) * P_SIZE;
-        /* thresholds of the two polarities: T each, or with brightness compensation
-         * T + off and T - off, off = the mean brightness change over D frames (k^2 box
-         * units, truncated like EngineParams.brightness_offset) clamped to +-T */
+        /* state +1 if now - then > Tp, -1 if then - now > Tn: Tp = Tn = T, or with
+         * brightness compensation T + off and T - off (either may be negative), off = the
+         * mean brightness change over D frames in k^2 box units, truncated like
+         * EngineParams.brightness_offset */
         int Tp = T, Tn = T;
 #if COMPENSATE
         {
             const long change = (long)bright[t % P_SLOTS] - (long)bright[pos_mod(t - D, P_SLOTS)];
             const long per_pixel_q = change * 256 / ((long)W * H);
-            int off = (int)(per_pixel_q * (k * k) / 256);
-            off = off > T ? T : (off < -T ? -T : off);
+            const int off = (int)(per_pixel_q * (k * k) / 256);
             Tp = T + off;
             Tn = T - off;
         }
@@ -71,12 +101,11 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
             if (k == 1) {
                 /* a 1x1 receptor is the prefiltered pixel itself: P_t - P_(t-D), byte-wise */
                 __global const uchar *pn = P_now + y * PSTRIDE + PPAD + x, *pt = P_then + y * PSTRIDE + PPAD + x;
-                /* |P_t - P_(t-D)| <= 255 */
-                pw = exceeds32(pn, pt, Tp > 255 ? 255 : (uchar)Tp);
-                nw = exceeds32(pt, pn, Tn > 255 ? 255 : (uchar)Tn);
+                pw = above32_bytes(pn, pt, Tp);
+                nw = above32_bytes(pt, pn, Tn);
             } else if (k <= 11) {
                 /* |now - then| <= 121 * 255 < 2^15: the int16 difference is exact */
-                const short Tps = Tp > 32767 ? 32767 : (short)Tp, Tns = Tn > 32767 ? 32767 : (short)Tn;
+                const short Tps = (short)CLAMPI(Tp, -32767, 32767), Tns = (short)CLAMPI(Tn, -32767, 32767);
                 short16 d0, d1;
                 if (D == 1) {
                     d0 = as_short16(box16(dsat, y, x, r));
@@ -90,14 +119,8 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
             } else {
                 const ushort16 now0 = box16(S_now, y, x, r), then0 = box16(S_then, y, x, r);
                 const ushort16 now1 = box16(S_now, y, x + 16, r), then1 = box16(S_then, y, x + 16, r);
-                /* now - then > T  <=>  sat(sat(now - T) - then) != 0 (likewise negative) */
-                const ushort16 Tpv = (ushort16)((ushort)(Tp > 65535 ? 65535 : Tp));
-                const ushort16 Tnv = (ushort16)((ushort)(Tn > 65535 ? 65535 : Tn));
-                const short16 z = (short16)(0);
-                pw = ~pack32(as_short16(subs_u16(subs_u16(now0, Tpv), then0)) == z,
-                             as_short16(subs_u16(subs_u16(now1, Tpv), then1)) == z);
-                nw = ~pack32(as_short16(subs_u16(subs_u16(then0, Tnv), now0)) == z,
-                             as_short16(subs_u16(subs_u16(then1, Tnv), now1)) == z);
+                pw = above32_u16(now0, then0, now1, then1, Tp);
+                nw = above32_u16(then0, now0, then1, now1, Tn);
             }
             if (i == 0 || i >= i_edge) {
                 const uint valid = bit_range(r - x, W - 1 - r - x);

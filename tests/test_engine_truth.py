@@ -174,3 +174,24 @@ def test_brightness_compensation_keeps_a_drifting_static_scene_static():
     assert det_on <= 0.2 * det_off + 50
     for s in sums:
         assert s.quality > 0 and math.hypot(s.flow_x, s.flow_y) < 0.15
+
+
+@pytest.mark.parametrize("gain", [1.3, 0.7])
+def test_a_gain_step_is_caught_with_brightness_compensation(gain):
+    """With brightness compensation a step's mean is taken out of the states, and what is
+    left of a gain step has both polarities, so the polarity test alone would miss it: the
+    mean brightness jumping by more than θ flags it instead (three frames, quality 0); the
+    slow drift around it is not a step."""
+    from emdflow.params import MODELS
+
+    est = emdflow.FlowEstimator(W, H, **MODELS["extended"])
+    flight = CameraFlight("gravel", width=W, height=H, flow=(2.0, -1.0), noise_sigma=2.0, seed=2,
+                          exposure_drift=0.15, drift_frames=24)
+    flagged = []
+    for t in range(24):
+        frame = flight.render(t).astype(np.float64) * (gain if t >= 16 else 1.0)
+        field = est.update(np.clip(frame, 0, 255).astype(np.uint8))
+        flagged.append(field.exposure_step)
+        if field.exposure_step:
+            assert emdflow.summarize(field).quality == 0
+    assert [t for t, f in enumerate(flagged) if f] == [16, 17, 18]
