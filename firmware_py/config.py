@@ -68,8 +68,8 @@ class EngineConfig:
     def estimator_options(self) -> dict:
         """Keyword arguments of ``emdflow.FlowEstimator`` for this section."""
         # extended: temporal delays see 1/2 and 1/4 px/frame (hovering drift), a scale-15
-        # channel resolves 11-15 px/frame, the threshold follows scene contrast and
-        # exposure (emdflow.params.MODELS)
+        # channel resolves 11-15 px/frame, the threshold follows scene contrast and the
+        # states discount the frame's brightness change (emdflow.params.MODELS)
         return {"threshold": self.threshold, **MODELS[self.model]}
 
 
