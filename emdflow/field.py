@@ -47,9 +47,10 @@ class FlowField:
         Speed of each channel, px/frame (``u = sign(code) · speeds[|code| − 1]``).
     stats : ndarray of int64
         Per-frame counters (detections, textured and saturated pixels, changed states).
-    histogram : ndarray of int64, shape (2, 2·channels, orientation bins)
-        Detections binned by axis, signed channel and gradient orientation (the summary's
-        input; see :func:`emdflow.reference.summary_statistics`).
+    histogram : ndarray of int64, shape (2, 2·channels, HISTOGRAM_BINS)
+        Detections binned by axis, signed channel, gradient-strength class and gradient
+        orientation (``class · ORIENTATION_BINS + orientation``; the summary's input; see
+        :func:`emdflow.reference.summary_statistics`).
     positions : ndarray of int64, shape (2, 2·channels, position bins) or None
         The same detections binned by x (horizontal) or y (vertical) position, for the
         expansion and balance cues.

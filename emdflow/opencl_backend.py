@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .params import ORIENTATION_BINS, EngineParams
+from .params import GRADIENT_CLASS_STEPS, HISTOGRAM_BINS, ORIENTATION_BINS, EngineParams
 from .reference import POSITION_BINS, STAT_CONTRAST, STAT_FIRST_CHANGED
 
 __all__ = ["OpenCLEngine", "PackedCodes", "list_devices", "kernel_source"]
@@ -157,7 +157,7 @@ class _Layout:
         self.t_period = math.lcm(self.SAT_SLOTS, self.P_SLOTS, *self.rings)
         self.plane_words = (height + 2 * self.PADR) * self.NWP
         self.sat_elems = (height + 1) * self.SSTRIDE
-        self.hist_size = 2 * 2 * len(chans) * ORIENTATION_BINS
+        self.hist_size = 2 * 2 * len(chans) * HISTOGRAM_BINS
         self.pos_size = 2 * 2 * len(chans) * POSITION_BINS
         self.n_fixed = STAT_FIRST_CHANGED + len(chans)
         self.n_stats = self.n_fixed + self.pos_size + self.HIST_COPIES * self.hist_size
@@ -191,6 +191,8 @@ class _Layout:
             "POS_BINS": POSITION_BINS,
             "FINEST_CHANNEL": chans.index((params.scales[0], 1)),
             "NBINS": ORIENTATION_BINS,
+            "NCLASS": len(GRADIENT_CLASS_STEPS) + 1,
+            "CLASS_STEPS": join(GRADIENT_CLASS_STEPS),
             "ORIENT_C": join(table[:, 0]),
             "ORIENT_S": join(table[:, 1]),
         }
@@ -344,7 +346,7 @@ class OpenCLEngine:
         self._k_integral.set_args(self.sat_buf, self.dsat_buf, zero, self.bright_buf, zero)
         self._k_states.set_args(self.sat_buf, self.dsat_buf, self.planes, self.p_buf, self.frame_buf, self.result,
                                 zero, zero, self.bright_buf)
-        self._k_evd.set_args(self.planes, self.result, self.debug_buf, self.sat_buf, self.p_buf, zero)
+        self._k_evd.set_args(self.planes, self.result, self.debug_buf, self.sat_buf, self.p_buf, zero, zero)
         self._set_prefilter, self._set_integral, self._set_states, self._set_evd = (
             _int_arg_setter(k, i) for k, i in ((self._k_prefilter, 4), (self._k_integral, 2),
                                                (self._k_states, 6), (self._k_evd, 5)))
@@ -384,6 +386,7 @@ class OpenCLEngine:
         self._set_states(6, t)
         self._set_states(7, int(self.theta_q))
         self._set_evd(5, t)
+        self._set_evd(6, int(self.theta_q))
         host = np.empty(lay.result_bytes, np.uint8)
         events = (
             cl.enqueue_copy(q, self.frame_buf, np.ascontiguousarray(frame), is_blocking=False),
@@ -405,7 +408,7 @@ class OpenCLEngine:
                                                     self.params.contrast_samples(lay.W, lay.H))
         positions = ints[lay.n_fixed : lay.n_fixed + lay.pos_size].astype(np.int64)
         copies = ints[lay.n_fixed + lay.pos_size :].reshape(lay.HIST_COPIES, lay.hist_size)
-        hist = copies.sum(axis=0, dtype=np.int64).reshape(2, 2 * n_ch, ORIENTATION_BINS)
+        hist = copies.sum(axis=0, dtype=np.int64).reshape(2, 2 * n_ch, HISTOGRAM_BINS)
         return codes, stats, hist, positions.reshape(2, 2 * n_ch, POSITION_BINS)
 
     def step(self, frame: np.ndarray):

@@ -28,7 +28,8 @@ import math
 
 import numpy as np
 
-__all__ = ["EngineParams", "gaussian_weights", "ORIENTATION_BINS", "MODELS"]
+__all__ = ["EngineParams", "gaussian_weights", "ORIENTATION_BINS", "GRADIENT_CLASS_STEPS",
+           "HISTOGRAM_BINS", "MODELS"]
 
 #: Named detector models: the ``FlowEstimator`` keywords of each. ``"paper"`` is the
 #: published model (seven one-frame channels, fixed threshold); ``"extended"`` adds the
@@ -46,6 +47,15 @@ MODELS = {
 
 #: Orientation bins over 180° used to summarise the gradient direction of detections.
 ORIENTATION_BINS = 64
+#: Gradient-strength classes of a detection: its class counts the steps ``m`` with
+#: ``|∇R_k|₁ ≥ (m / 2) · 2θk²``, i.e. ``512 (|gx| + |gy|) ≥ m · 2 θ_q k²`` (exact integers).
+#: ``|∇R_k|₁ / 2θk²`` is about the inverse of the displacement (px) that changes the receptor
+#: by θ k², so it says which delays and scales *can* fire at a given speed: the code mixture
+#: of a class depends much less on the texture than the mixture of all detections.
+GRADIENT_CLASS_STEPS = (1, 2, 4)
+#: Bins per (axis, code) row of the detection histogram: class-major,
+#: ``bin = class · ORIENTATION_BINS + orientation``.
+HISTOGRAM_BINS = (len(GRADIENT_CLASS_STEPS) + 1) * ORIENTATION_BINS
 #: Fixed-point scale of the orientation boundary table (cos/sin × 2**14).
 _ORIENT_ONE = 1 << 14
 #: The paper's 11-tap Gaussian (sigma = 11/6) with integer weights summing to 256.

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .params import ORIENTATION_BINS, EngineParams
+from .params import GRADIENT_CLASS_STEPS, HISTOGRAM_BINS, ORIENTATION_BINS, EngineParams
 
 __all__ = [
     "DIRECTIONS",
@@ -275,7 +275,8 @@ def summary_statistics(
     * the prefiltered frame's mean in 1/256 gray levels, with brightness compensation
       (the exposure-step test compares it frame to frame), else 0;
     * nonzero states per channel;
-    * the detection histogram ``hist[axis, code, orientation]``: detections on every
+    * the detection histogram ``hist[axis, code, class · ORIENTATION_BINS + orientation]``
+      (``class`` the gradient-strength class, see ``GRADIENT_CLASS_STEPS``): detections on every
       ``EngineParams.evidence_row_step(H)``-th row and
       ``EngineParams.evidence_column_step(W)``-th column,
       ``axis`` 0 = horizontal / 1 = vertical, ``code = 2c + (1 if negative)``,
@@ -288,7 +289,7 @@ def summary_statistics(
     Returns
     -------
     stats : ndarray of int64, shape (5 + n_channels,)
-    hist : ndarray of int64, shape (2, 2·n_channels, ORIENTATION_BINS)
+    hist : ndarray of int64, shape (2, 2·n_channels, HISTOGRAM_BINS)
     positions : ndarray of int64, shape (2, 2·n_channels, POSITION_BINS)
     """
     channels = params.channels
@@ -296,11 +297,11 @@ def summary_statistics(
     stats = np.zeros(STAT_FIRST_CHANGED + len(channels), np.int64)
     stats[STAT_U_DETECTIONS] = np.count_nonzero(u_code)
     stats[STAT_V_DETECTIONS] = np.count_nonzero(v_code)
+    q = params.threshold_q(params.threshold) if theta_q is None else theta_q
     if H >= 3 and W >= 3:
         p = p_now.astype(np.int64)
         gx = np.abs(p[1:-1, 2:] - p[1:-1, :-2])
         gy = np.abs(p[2:, 1:-1] - p[:-2, 1:-1])
-        q = params.threshold_q(params.threshold) if theta_q is None else theta_q
         grad = (gx + gy)[1::2]  # rows 2, 4, …
         stats[STAT_TEXTURED] = np.count_nonzero(grad > params.texture_threshold_for(q))
         stats[STAT_CONTRAST] = int(grad.sum())
@@ -314,7 +315,7 @@ def summary_statistics(
     stats[STAT_BRIGHTENING] = np.count_nonzero(states_now[finest] > 0)
     positions = np.zeros((2, 2 * len(channels), POSITION_BINS), np.int64)
 
-    hist = np.zeros((2, 2 * len(channels), ORIENTATION_BINS), np.int64)
+    hist = np.zeros((2, 2 * len(channels), HISTOGRAM_BINS), np.int64)
     for axis, code in enumerate((u_code, v_code)):
         step = params.evidence_row_step(H)
         xstep = params.evidence_column_step(W)
@@ -347,8 +348,14 @@ def summary_statistics(
             gys[sel] = R[np.clip(cy + 1, y0, y1), cx] - R[np.clip(cy - 1, y0, y1), cx]
         keep = (gxs != 0) | (gys != 0)
         bins = orientation_bins(gxs[keep], gys[keep])
+        # gradient-strength class: 512 |g|_1 >= m * 2 theta_q k^2 for each step m
+        strength = 512 * (np.abs(gxs) + np.abs(gys))[keep]
+        unit = 2 * q * ks[keep] ** 2
+        cls = np.zeros(strength.size, np.int64)
+        for m in GRADIENT_CLASS_STEPS:
+            cls += strength >= m * unit
         codes = 2 * chan[keep] + negative[keep]
-        np.add.at(hist[axis], (codes, bins), 1)
+        np.add.at(hist[axis], (codes, cls * ORIENTATION_BINS + bins), 1)
     return stats, hist, positions
 
 

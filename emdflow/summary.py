@@ -142,7 +142,7 @@ from pathlib import Path
 import numpy as np
 
 from .field import FlowField
-from .params import EngineParams
+from .params import GRADIENT_CLASS_STEPS, ORIENTATION_BINS, EngineParams
 from .reference import STAT_CONTRAST
 
 __all__ = ["FlowSummary", "summarize", "SummaryOptions", "calibration_for"]
@@ -365,16 +365,24 @@ def _parabola_weights(m: int) -> np.ndarray:
 class _LikelihoodModel:
     """The calibration table laid out per histogram row, for one (table, options) pair.
 
-    Rows are the usable ``axis · 64 + orientation bin``. ``logp[row, code, β node · 2U + j]``
-    is the log-probability of ``code`` for ``|c|`` at u-node ``j`` (``c > 0`` for ``j < U``,
-    ``c < 0`` for ``j ≥ U``). Per search direction ``d`` (0.1° steps) and row: ``absg[d]``
-    = |c| / |F| (``c = F · n / n_a``), ``jbase[d]`` the offset of the row's curve (and of
-    its sign half) in the flattened per-frame curves, and ``bk[d]``, ``bf[d]`` the β node
-    and weight of the row's β.
+    Base rows are the usable ``axis · 64 + orientation bin`` (``R`` of them); each has one
+    histogram row per gradient-strength class of the table. ``logp[(row · classes +
+    class) · codes + code, β node · U + j]`` is the log-probability of ``code`` for ``|c|``
+    at u-node ``j`` (for ``c < 0`` the counts are read with their codes' signs swapped,
+    ``hist_index[row, 1]``). Per search direction ``d`` (0.25° steps) and base row:
+    ``absg[d]`` = |c| / |F| (``c = F · n / n_a``), ``neg[d]`` whether ``c < 0``, and
+    ``bi[d]``, ``bf[d]`` the β node below the row's β and the weight of the node above. A
+    frame only gathers the curves of its nonzero counts.
     """
 
     def __init__(self, table: dict, max_axis_angle: float, outlier: float, params: EngineParams):
-        prob = np.asarray(table["prob"], np.float64)  # (ψ, β, u, category)
+        prob = np.asarray(table["prob"], np.float64)  # ([class,] ψ, β, u, category)
+        steps = tuple(int(m) for m in np.asarray(table.get("gradient_class_steps", ())).ravel())
+        if not steps:
+            prob = prob[None]
+        self.classes = n_classes = prob.shape[0]
+        if n_classes != len(steps) + 1 and steps:
+            raise ValueError("calibration table: class dimension does not match its class steps")
         psi_nodes = np.asarray(table["psi_nodes_deg"], np.float64)
         beta_nodes = np.asarray(table["beta_nodes"], np.float64)
         u_nodes = np.asarray(table["u_nodes"], np.float64)
@@ -393,41 +401,46 @@ class _LikelihoodModel:
         na = np.concatenate([cos, sin])  # signed axis component of the normal
         psi = np.degrees(np.arccos(np.clip(np.abs(na), 0.0, 1.0)))
         self.rows = rows = np.nonzero(psi < max_axis_angle)[0]
-        n_rows = rows.size
+        self.n_base = n_rows = rows.size
         i = np.clip(np.searchsorted(psi_nodes, psi, side="right") - 1, 0, len(psi_nodes) - 2)
         f = ((psi - psi_nodes[i]) / (psi_nodes[i + 1] - psi_nodes[i]))[:, None, None, None]
-        p_row = (1.0 - f) * prob[i] + f * prob[i + 1]  # (row, β, u, category)
-        p_row = (1.0 - outlier) * p_row + outlier / n_cat
-        lp = np.log(p_row)
-        self.n_beta = n_beta = lp.shape[1]
-        # (row, code, β node · U + u): log-probability of a code for c > 0; for c < 0 the
-        # category is the code with its sign flipped, so the curves of c < 0 come from the
-        # counts with codes swapped (code ^ 1) against the same table
-        self.logp = np.ascontiguousarray(
-            lp[rows].transpose(0, 3, 1, 2).reshape(n_rows, n_cat, -1)).astype(np.float32)
-        # where each usable row's counts are in hist.ravel() (hist[axis, code, bin]), as
-        # (row, [codes, codes ^ 1])
+        self.n_beta = n_beta = prob.shape[2]
+        logp = []
+        for pc in prob:
+            p_row = (1.0 - f) * pc[i] + f * pc[i + 1]  # (row, β, u, category)
+            p_row = (1.0 - outlier) * p_row + outlier / n_cat
+            # (row, code, β node · U + u): log-probability of a code for c > 0; for c < 0
+            # the category is the code with its sign flipped, so the curves of c < 0 come
+            # from the counts with codes swapped (code ^ 1) against the same table
+            logp.append(np.log(p_row)[rows].transpose(0, 3, 1, 2).reshape(n_rows, n_cat, -1))
+        # (base row · classes · codes, β node · U): one curve per (row, class, code),
+        # base-row-major so a frame's nonzero counts come out sorted by (base row, sign)
+        # (plus a row of zeros at the end: the padding of _row_curves' gather)
+        logp = np.stack(logp, axis=1).reshape(n_rows * n_classes * n_cat, -1)
+        self.logp = np.concatenate([logp, np.zeros((1, logp.shape[1]))]).astype(np.float32)
+        # where each (base row, sign, class, code) count is in hist.ravel()
+        # (hist[axis, code, class · 64 + bin]); sign 1 reads the codes swapped (code ^ 1)
         n_bins = phi.size
         axis, b = np.divmod(rows, n_bins)
         codes = np.arange(n_cat)
-        index = (axis[:, None] * n_cat + codes[None, :]) * n_bins + b[:, None]
-        self.hist_index = np.stack([index, index[:, codes ^ 1]], axis=1)  # (R, 2, codes)
-        # per-direction geometry, padded by _PAD directions on both sides (index d + _PAD
-        # is direction d, for d in -_PAD .. _DIRECTIONS + _PAD)
+        index = [(axis[:, None] * n_cat + codes[None, :]) * (n_classes * n_bins) + c * n_bins + b[:, None]
+                 for c in range(n_classes)]
+        index = np.stack(index, axis=1)  # (R, C, codes)
+        self.hist_index = np.stack([index, index[:, :, codes ^ 1]], axis=1).reshape(n_rows, 2, -1)
+        self.n_cat = n_cat
+        self.hist_bins = n_classes * n_bins
+        # per-direction geometry of the base rows, padded by _PAD directions on both sides
+        # (index d + _PAD is direction d, for d in -_PAD .. _DIRECTIONS + _PAD)
         ang = (np.arange(_DIRECTIONS + 2 * _PAD) - _PAD) * _DIR_STEP
         ca, sa = np.cos(ang)[:, None], np.sin(ang)[:, None]
         vn = ca * nx[rows] + sa * ny[rows]  # (D, R) normal speed per unit flow
         g = vn / na[rows]
         self.absg = np.abs(g).astype(np.float32)
-        self.jbase = (np.arange(n_rows) * (2 * n_u) + np.where(g < 0, n_u, 0)).astype(np.int32)
+        self.neg = g < 0
         beta = np.sqrt(np.clip(1.0 - vn * vn, 0.0, 1.0))
         bi = np.clip(np.searchsorted(beta_nodes, beta, side="right") - 1, 0, n_beta - 2)
-        bf = (beta - beta_nodes[bi]) / (beta_nodes[bi + 1] - beta_nodes[bi])
-        # per (row, sign): weight of the upper β node, and the lower node's row in the
-        # frame's curves laid out as ((row · 2 + sign) · β node, u)
-        self.bf = np.repeat(bf, 2, axis=1)[..., None].astype(np.float32)  # (D, R·2, 1)
-        sign_rows = (np.arange(n_rows)[:, None] * 2 + np.arange(2)[None, :]).ravel()
-        self.bk = (sign_rows[None, :] * n_beta + np.repeat(bi, 2, axis=1)).astype(np.int32)
+        self.bi = bi.astype(np.int32)
+        self.bf = ((beta - beta_nodes[bi]) / (beta_nodes[bi + 1] - beta_nodes[bi])).astype(np.float32)
         self.inv_du = np.float32(1.0 / self.du)
         self.u0_du = np.float32(self.u0 / self.du)
         self.u_top = np.float32(n_u - 1 - 1e-3)
@@ -474,6 +487,9 @@ def _table_matches(table: dict, params: EngineParams):
         return None  # the paper's table names its channel speeds only
     if np.asarray(table["prob"]).shape[-1] != 2 * len(params.channels):
         return None
+    steps = tuple(int(m) for m in np.asarray(table.get("gradient_class_steps", ())).ravel())
+    if steps and steps != GRADIENT_CLASS_STEPS:
+        return None  # made for other gradient-strength classes than the engine's
     mode = str(table["threshold_mode"]) if "threshold_mode" in table else None
     return 0 if mode == params.threshold_mode else 1
 
@@ -503,10 +519,22 @@ def _model_for(params: EngineParams, opts: SummaryOptions):
         table = next(t for t in _load_calibrations() if t["_path"] == path)
         edges = np.asarray(table.get("contrast_edges", ()), np.float64)
         prob = np.asarray(table["prob"])
-        per_class = [prob] if prob.ndim == 4 else list(prob)
-        model = (edges, [
-            _LikelihoodModel(dict(table, prob=p), opts.max_axis_angle, opts.outlier_probability,
-                             params) for p in per_class])
+        # ([contrast class,] [gradient class,] ψ, β, u, category); a table with gradient-
+        # strength classes also holds the all-classes table ``prob_all`` (for histograms
+        # without classes, e.g. made by hand)
+        by_class = "gradient_class_steps" in table
+        plain = 5 if by_class else 4
+        per_class = [prob] if prob.ndim == plain else list(prob)
+        if by_class:
+            folded = np.asarray(table["prob_all"])
+            folded = [folded] if folded.ndim == 4 else list(folded)
+        else:
+            folded = per_class
+        bare = {k: v for k, v in table.items() if k != "gradient_class_steps"}
+        build = lambda t, p: _LikelihoodModel(dict(t, prob=p), opts.max_axis_angle,  # noqa: E731
+                                              opts.outlier_probability, params)
+        model = (edges, [(build(table, p) if by_class else None, build(bare, f))
+                         for p, f in zip(per_class, folded)])
     _MODEL_CACHE[key] = model
     return model
 
@@ -523,33 +551,70 @@ def _pick_model(models, field: FlowField):
 
 
 def _row_curves(model: _LikelihoodModel, hist: np.ndarray, exponent: float):
-    """Per-row log-likelihood curves of one frame, shape ((rows · 2 + sign) · β nodes, U)
-    (sign 0: c > 0, 1: c < 0), plus the detection count and the number of active rows.
+    """Log-likelihood curves of one frame's base rows with detections, shape
+    ((active rows · 2 + sign) · β nodes, U) (sign 0: c > 0, 1: c < 0), with those base
+    rows, the detection count and the number of active (row, gradient class) rows.
 
     With ``exponent`` < 1 a row of ``n`` detections weighs ``n ** exponent`` (its counts
-    are scaled by ``n ** (exponent − 1)``): neighbouring detections are not independent."""
-    h = hist.ravel().take(model.hist_index).astype(np.float32)  # (R, 2, codes)
-    n_row = np.add.reduce(h[:, 0, :], axis=1)
-    active = int(np.count_nonzero(n_row))
+    are scaled by ``n ** (exponent − 1)``): neighbouring detections are not independent.
+    The gradient classes of one base row share its geometry, so their curves add up. Only
+    the nonzero counts are gathered (a few hundred of the table's rows per frame)."""
+    C, n_cat = model.classes, model.n_cat
+    h = hist.ravel().take(model.hist_index)  # (R, 2, classes · codes)
+    n_row = np.add.reduce(h[:, 0, :].reshape(-1, C, n_cat), axis=2).ravel()  # (R · C,)
     count = float(np.add.reduce(n_row))
+    active = int(np.count_nonzero(n_row))
+    if C == 1:  # a table without gradient classes: one dense batched product, all rows
+        w = h.astype(np.float32)
+        if exponent != 1.0:
+            w *= (np.maximum(n_row, 1.0) ** (exponent - 1.0)).astype(np.float32)[:, None, None]
+        R = model.n_base
+        curves = np.matmul(w, model.logp[:-1].reshape(R, n_cat, -1))
+        return (curves.reshape(-1, model.n_u), np.arange(R)), count, active
+    flat = np.flatnonzero(h)  # sorted by (base row, sign, class, code)
+    if flat.size == 0:
+        return (np.zeros((0, model.n_u), np.float32), np.zeros(0, np.intp)), count, active
+    per_sign = C * n_cat
+    key, within = np.divmod(flat, per_sign)  # key = base row · 2 + sign
+    rowcls = (key >> 1) * C + within // n_cat
+    vals = h.ravel().take(flat).astype(np.float32)
     if exponent != 1.0:
-        h *= (np.maximum(n_row, 1.0) ** (exponent - 1.0))[:, None, None]
-    curves = np.matmul(h, model.logp).reshape(-1, model.n_u)
-    return curves, count, active
+        vals *= n_row.take(rowcls).astype(np.float32) ** np.float32(exponent - 1.0)
+    # one group of nonzero counts per (base row, sign), padded with the table's zero row
+    # to the largest group: the weighted sums are one batched (1 × n) @ (n × curve) product
+    starts = np.flatnonzero(np.diff(key, prepend=-1))
+    sizes = np.diff(starts, append=flat.size)
+    group = np.repeat(np.arange(starts.size), sizes)
+    slot = np.arange(flat.size) - starts.take(group)
+    rows = np.full((starts.size, int(sizes.max())), model.logp.shape[0] - 1)
+    weights = np.zeros(rows.shape, np.float32)
+    rows[group, slot] = (key >> 1) * per_sign + within
+    weights[group, slot] = vals
+    sums = np.matmul(weights[:, None, :], model.logp.take(rows, axis=0))[:, 0]
+    keys = key.take(starts)
+    base = np.unique(keys >> 1)
+    curves = np.zeros((base.size * 2, sums.shape[1]), np.float32)
+    curves[np.searchsorted(base, keys >> 1) * 2 + (keys & 1)] = sums
+    return (curves.reshape(-1, model.n_u), base), count, active
 
 
-def _loglik_grid(model: _LikelihoodModel, curves: np.ndarray, log_s: float, d0: int, level):
+def _loglik_grid(model: _LikelihoodModel, frame, log_s: float, d0: int, level):
     """Log-likelihood on one search level around (log speed ``log_s``, direction index
     ``d0``), with each row's β taken at ``d0``: shape (speeds, directions)."""
+    curves, base = frame
+    n_act = base.size
     es, doff = level[3], level[4]
-    bk = model.bk[d0 + _PAD]
-    cur = curves.take(bk, axis=0)  # (R · 2, U) at the β node below ...
+    # the β node below each (active row, sign) curve, and the weight of the one above
+    first = (np.arange(n_act)[:, None] * 2 + np.arange(2)[None, :]) * model.n_beta
+    bk = (first + model.bi[d0 + _PAD].take(base)[:, None]).ravel()
+    cur = curves.take(bk, axis=0)  # (A · 2, U) at the β node below ...
     hi = curves.take(bk + 1, axis=0)  # ... and above
     hi -= cur
-    hi *= model.bf[d0 + _PAD]
+    hi *= np.repeat(model.bf[d0 + _PAD].take(base), 2)[:, None]
     cur += hi  # β-interpolated curves
     ds = doff + d0  # tables are padded: no wrap-around
-    x = np.multiply.outer(es * math.exp(log_s), model.absg.take(ds, axis=0))  # (S, A, R) |c|
+    absg = model.absg.take(ds, axis=0).take(base, axis=1)  # (directions, A)
+    x = np.multiply.outer(es * math.exp(log_s), absg)  # (S, directions, A) |c|
     x += model.u_offset
     np.log(x, out=x)
     x *= model.inv_du
@@ -558,7 +623,8 @@ def _loglik_grid(model: _LikelihoodModel, curves: np.ndarray, log_s: float, d0: 
     np.maximum(x, 0.0, out=x)
     j = x.astype(np.intp)
     x -= j
-    j += model.jbase.take(ds, axis=0)
+    # each (active row, sign) curve is U long; c < 0 reads the row's second half
+    j += np.arange(n_act) * (2 * model.n_u) + model.neg.take(ds, axis=0).take(base, axis=1) * model.n_u
     lo = cur.take(j)
     j += 1
     hi = cur.take(j)
@@ -576,7 +642,7 @@ def _vertex(l0: float, l1: float, l2: float) -> float:
     return max(-0.5, min(0.5, 0.5 * (l0 - l2) / den))
 
 
-def _likelihood_fit(model: _LikelihoodModel, curves: np.ndarray, U0: float, V0: float):
+def _likelihood_fit(model: _LikelihoodModel, curves, U0: float, V0: float):
     """Coarse-to-fine polar search; returns (U, V, σ of log-speed, σ of direction)."""
     log_s = math.log(max(math.hypot(U0, V0), model.speed_floor))
     d = int(round(math.atan2(V0, U0) / _DIR_STEP)) % _DIRECTIONS
@@ -649,7 +715,9 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
     if textured < opts.min_textured or field.saturated_fraction > opts.max_saturated:
         return _BLIND
     q_texture = min(1.0, textured / opts.full_textured)
-    hist = field.histogram
+    # the IoC guess (and a table without gradient-strength classes) sums the classes
+    full = field.histogram
+    hist = full.reshape(full.shape[0], full.shape[1], -1, ORIENTATION_BINS).sum(axis=2)
     flat = hist.ravel()
     used = np.flatnonzero(flat)
     counts = flat[used].astype(np.float64)
@@ -664,7 +732,10 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
             return FlowSummary(0.0, 0.0, int(round(255 * q_texture * 0.75)), n, True, 1.0, 0.0)
         return FlowSummary(detections=n)
     models = _model_for(params, opts) if opts.likelihood else None
-    model = None if models is None else _pick_model(models, field)
+    model = None
+    if models is not None:  # the table of the histogram's gradient-strength classes, if any
+        by_class, folded = _pick_model(models, field)
+        model = by_class if by_class is not None and by_class.hist_bins == full.shape[-1] else folded
     fit = _robust_fit(_constraints(params), used, counts, opts,
                       opts.iterations if model is None else opts.guess_iterations)
     if fit is None:
@@ -675,7 +746,7 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
 
     count = active = 0
     if model is not None:
-        curves, count, active = _row_curves(model, hist, opts.row_exponent)
+        curves, count, active = _row_curves(model, full if model.classes > 1 else hist, opts.row_exponent)
     if active >= 2 and count >= opts.min_detections:
         U1, V1, sig_s, sig_a = _likelihood_fit(model, curves, U, V)
         speed = math.hypot(U1, V1)

@@ -24,15 +24,41 @@ import numpy as np
 __all__ = ["TEXTURES", "load_texture", "CameraFlight", "FlightTruth"]
 
 #: Names of bundled photographs usable as ground textures (scikit-image's ``data`` module).
+#: Besides these (and image files), ``"immunohistochemistry"`` (a stained tissue section:
+#: a fine, irregular texture) and synthetic ``"fractal-<beta>-<seed>"`` textures are known.
 TEXTURES = ("gravel", "grass", "brick", "camera", "moon", "coffee", "astronaut", "rocket")
+_EXTRA_PHOTOGRAPHS = ("immunohistochemistry",)
+
+
+def fractal_texture(beta: float, seed: int, size: int = 1024) -> np.ndarray:
+    """A random texture with a ``1 / f**beta`` amplitude spectrum (uint8, mean 128, σ 40).
+
+    Natural ground (gravel, grass, soil) is close to such a spectrum with ``beta`` ≈ 1–1.5;
+    the bundled photographs used for calibration are smoother. Deterministic for a seed."""
+    rng = np.random.default_rng(int(seed))
+    fy = np.fft.fftfreq(size)[:, None]
+    fx = np.fft.rfftfreq(size)[None, :]
+    f = np.hypot(fx, fy)
+    f[0, 0] = 1.0
+    spectrum = (rng.normal(size=f.shape) + 1j * rng.normal(size=f.shape)) / f ** float(beta)
+    spectrum[0, 0] = 0.0
+    image = np.fft.irfft2(spectrum, s=(size, size))
+    image = (image - image.mean()) / image.std() * 40.0 + 128.0
+    return np.clip(image, 0, 255).astype(np.uint8)
 
 
 @lru_cache(maxsize=16)
 def _load_texture_cached(name: str) -> np.ndarray:
-    if name in TEXTURES:
+    if name in TEXTURES or name in _EXTRA_PHOTOGRAPHS:
         import skimage.data
 
         image = getattr(skimage.data, name)()
+    elif name.startswith("fractal-") and not Path(name).is_file():
+        try:
+            _, beta, seed = name.split("-")
+            image = fractal_texture(float(beta), int(seed))
+        except ValueError:
+            raise ValueError(f"texture {name!r}: expected fractal-<beta>-<seed>, e.g. fractal-1.0-1") from None
     else:
         path = Path(name)
         if not path.is_file():

@@ -27,6 +27,8 @@
  *   STATS_OFFSET    byte offset of the int32 statistics in the result buffer
  *   N_STATS         int32 statistics (counters, position and orientation histograms)
  *   NBINS           orientation bins; ORIENT_C, ORIENT_S boundary table (x 2^14)
+ *   NCLASS, CLASS_STEPS  gradient-strength classes of the evidence and their steps m
+ *                   (class = #{m : 512 |g|_1 >= m 2 theta_q k^2})
  *
  * Vectors are kept at 256 bits (ushort16, uint8): PoCL 3.0 miscompiles some 512-bit
  * vector code on machines without AVX-512 (LLVM aborts or broken cached binaries). */
@@ -46,7 +48,7 @@
 #define STAT_POS (STAT_CHANGED + NCH)
 #define POS_SIZE (2 * 2 * NCH * POS_BINS)
 #define STAT_HIST (STAT_POS + POS_SIZE)
-#define HIST_SIZE (2 * 2 * NCH * NBINS)
+#define HIST_SIZE (2 * 2 * NCH * NCLASS * NBINS)
 
 __constant int CK[NCH] = { CH_K };
 __constant int CD[NCH] = { CH_D };

@@ -66,7 +66,8 @@ __attribute__((always_inline)) inline uint8 matches(__global const uint *planes,
 }
 
 __kernel void velocity_detectors(__global const uint *planes, __global char *result,
-                                 __global uint *debug, __global const ushort *sat, __global const uchar *P, int t)
+                                 __global uint *debug, __global const ushort *sat, __global const uchar *P, int t,
+                                 int theta_q)
 {
     const int i = get_global_id(0) * 8;   /* first word */
     const int y = get_global_id(1);
@@ -113,7 +114,7 @@ __kernel void velocity_detectors(__global const uint *planes, __global char *res
             __global int *hist = stats + STAT_HIST + (get_group_id(1) % HIST_COPIES) * HIST_SIZE;
             bin_run pos_run = { -1, 0 }, hist_run = { -1, 0 };
             for (int w = 0; w < 8 && i + w < NW; w++)
-                bin_detections(stats + STAT_POS, hist, sat, P, t, axis, y, i + w, o[w], o[w + H * OW],
+                bin_detections(stats + STAT_POS, hist, sat, P, t, theta_q, axis, y, i + w, o[w], o[w + H * OW],
                                o[w + 2 * H * OW], o[w + 3 * H * OW], o[w + 4 * H * OW], &pos_run, &hist_run);
             run_flush(stats + STAT_POS, &pos_run);
             run_flush(hist, &hist_run);

@@ -73,8 +73,10 @@ __attribute__((always_inline)) inline void run_flush(__global int *counts, bin_r
  * sign) of one axis into the position and orientation histograms. The gradient of a
  * scale-1 receptor image is the prefiltered image's own (from the ring of P; the tables
  * keep only the frames the larger scales need). */
+__constant int CSTEP[NCLASS - 1] = { CLASS_STEPS };
+
 inline void bin_detections(__global int *positions, __global int *hist, __global const ushort *sat,
-                           __global const uchar *P, int t,
+                           __global const uchar *P, int t, int theta_q,
                            int axis, int y, int i, uint b0, uint b1, uint b2, uint b3, uint bs,
                            bin_run *pos_run, bin_run *hist_run)
 {
@@ -108,6 +110,11 @@ inline void bin_detections(__global int *positions, __global int *hist, __global
             gy = box_at(S, bx, yd, r) - box_at(S, bx, yu, r);
         }
         if (gx == 0 && gy == 0) continue;
-        run_count(hist, hist_run, (axis * 2 * NCH + 2 * c + negative) * NBINS + orientation_bin(gx, gy));
+        /* gradient-strength class (|g|_1 < 2^17, 8 theta_q k^2 < 2^23: no overflow) */
+        const int strength = 512 * ((gx < 0 ? -gx : gx) + (gy < 0 ? -gy : gy));
+        const int unit = 2 * theta_q * k * k;
+        int cls = 0;
+        for (int m = 0; m < NCLASS - 1; m++) cls += strength >= CSTEP[m] * unit;
+        run_count(hist, hist_run, ((axis * 2 * NCH + 2 * c + negative) * NCLASS + cls) * NBINS + orientation_bin(gx, gy));
     }
 }

@@ -195,3 +195,21 @@ def test_a_gain_step_is_caught_with_brightness_compensation(gain):
         if field.exposure_step:
             assert emdflow.summarize(field).quality == 0
     assert [t for t, f in enumerate(flagged) if f] == [16, 17, 18]
+
+
+def test_stochastic_calibration_textures():
+    """The extended model's calibration also flies over 1/f^beta noise textures and a
+    tissue section (ground is rougher than the bundled photographs): deterministic per
+    seed, 8-bit, mean 128 and σ 40; a malformed name says what is expected."""
+    from emdflow.synthetic import fractal_texture, load_texture
+
+    a = load_texture("fractal-1.0-1")
+    assert a.shape == (1024, 1024) and np.array_equal(a, fractal_texture(1.0, 1).astype(np.float32))
+    assert not np.array_equal(a, load_texture("fractal-1.0-2"))
+    assert abs(a.mean() - 128) < 2 and abs(a.std() - 40) < 2
+    # rougher for a smaller beta
+    rough = np.abs(np.diff(a, axis=1)).mean()
+    assert rough > 2 * np.abs(np.diff(load_texture("fractal-1.4-2"), axis=1)).mean()
+    assert load_texture("immunohistochemistry").shape == (512, 512)
+    with pytest.raises(ValueError, match="fractal-<beta>-<seed>"):
+        load_texture("fractal-x")

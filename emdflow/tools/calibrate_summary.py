@@ -27,8 +27,8 @@ Steps (all deterministic; the committed table is exactly what these commands wri
     python -m emdflow.tools.calibrate_summary evaluate --random
 
 The extended model (``[engine] model = "extended"``: delays 1, 2, 4 at scale 1, a scale-15
-channel, adaptive threshold) has its own table, ``emdflow/summary_calibration_extended.npz``
-(~3.5, 3.5 and 3 minutes of collection on a quiet machine)::
+channel, adaptive threshold, brightness compensation) has its own table, ``emdflow/summary_calibration_extended.npz``
+(~3.5, 3.5, 3 and 3.5 minutes of collection on a quiet machine)::
 
     python -m emdflow.tools.calibrate_summary collect --model extended --flights 2800 \
         --frames 8 --seed 20240606 --out /tmp/emdflow_calib_ext.npz
@@ -37,8 +37,13 @@ channel, adaptive threshold) has its own table, ``emdflow/summary_calibration_ex
     python -m emdflow.tools.calibrate_summary collect --model extended --flights 2000 \
         --frames 8 --seed 11 --contrast-range 0.7,1 --scale-range 1,2 \
         --out /tmp/emdflow_calib_ext3.npz
+    # stochastic ground-like textures (the photographs above are smoother than gravel,
+    # grass or soil): two 1/f^beta noise textures and a stained tissue section
+    python -m emdflow.tools.calibrate_summary collect --model extended --flights 2800 \
+        --frames 8 --seed 31 --textures fractal-1.0-1,fractal-1.4-2,immunohistochemistry \
+        --out /tmp/emdflow_calib_ext4.npz
     python -m emdflow.tools.calibrate_summary fit --model extended /tmp/emdflow_calib_ext.npz \
-        /tmp/emdflow_calib_ext2.npz /tmp/emdflow_calib_ext3.npz --write
+        /tmp/emdflow_calib_ext2.npz /tmp/emdflow_calib_ext3.npz /tmp/emdflow_calib_ext4.npz --write
     # 10 speeds 0.25..13 px/frame x 4 textures x 8 directions x 6 frames = 1920 frames
     python -m emdflow.tools.calibrate_summary evaluate --model extended --random
     python -m emdflow.tools.calibrate_summary evaluate --model extended --offset 0.3
@@ -76,6 +81,7 @@ from pathlib import Path
 
 import numpy as np
 
+from emdflow.params import GRADIENT_CLASS_STEPS
 from emdflow.params import MODELS as _MODELS
 from emdflow.tools import interp_weights
 
@@ -207,6 +213,14 @@ U_GRID = {"paper": (U_OFFSET, U_COUNT), "extended": (0.2, 48)}
 #: 6–7 points worse at 0.25 px/frame); the paper's model has a single class (its layout is
 #: unchanged).
 CONTRAST_EDGES = {"paper": (), "extended": (3.75,)}
+#: Per model, whether the table has one distribution per gradient-strength class of the
+#: detections (``emdflow.params.GRADIENT_CLASS_STEPS``). For the extended model they take
+#: the texture out of its slow channels' code mixture (random directions: 7.8 % / 2.2° →
+#: 8.2 % / 1.95°, 0.25 px/frame 33 % → 16 % against a table without them, both fitted on
+#: the same flights); for the paper's model they gained little (8.9 % / 2.37° → 8.6 % /
+#: 2.26°) at twice the summary's cost and a worse 1 px/frame, so its table has none and
+#: the summary sums the classes.
+GRADIENT_CLASS_TABLES = {"paper": False, "extended": True}
 #: A cell needs this much detection weight to stand on its own (else: nearest filled cell).
 MIN_CELL_WEIGHT = 100.0
 
@@ -227,13 +241,33 @@ def u_nodes(u_offset=U_OFFSET, u_count=U_COUNT):
     return np.linspace(math.log(u_offset), math.log(C_MAX + u_offset), u_count)
 
 
+def accumulate_classes(hist, flow, u_offset=U_OFFSET, u_count=U_COUNT):
+    """Detection weight ``N[gradient class, ψ, β, u, category]`` (see :func:`accumulate`)."""
+    hist = np.asarray(hist)
+    n_classes = hist.shape[-1] // 64
+    return np.stack([accumulate(hist[..., c * 64:(c + 1) * 64], flow, u_offset, u_count)
+                     for c in range(n_classes)])
+
+
+def class_tables(Nc):
+    """Conditional probabilities ``P[gradient class, ψ, β, u, category]``: a cell of a class
+    with less than ``MIN_CELL_WEIGHT`` of data takes the all-classes table's cell."""
+    P_all, tot_all = table_from_counts(Nc.sum(axis=0))
+    tot = Nc.sum(axis=-1)
+    ok = (tot >= MIN_CELL_WEIGHT)[..., None]
+    P = np.where(ok, Nc / np.maximum(tot, 1e-12)[..., None], P_all[None])
+    return P, tot
+
+
 def accumulate(hist, flow, u_offset=U_OFFSET, u_count=U_COUNT):
-    """Detection weight ``N[ψ, β, u, category]`` from histograms with known flow.
+    """Detection weight ``N[ψ, β, u, category]`` from histograms with known flow (the
+    gradient-strength classes summed).
 
     ``category = 2·scale_index + (0 if the code's sign agrees with sign(c) else 1)``;
     every histogram bin is spread over the 8 surrounding grid nodes (trilinear weights).
     """
-    hist = np.asarray(hist, np.float64)  # (frames, 2, 14, 64)
+    hist = np.asarray(hist, np.float64)  # (frames, 2, codes, classes · 64)
+    hist = hist.reshape(*hist.shape[:3], -1, 64).sum(axis=3)  # the classes summed
     flow = np.asarray(flow, np.float64)
     n_frames, _, n_codes, n_bins = hist.shape
     normals, n_axis, psi = crossing_geometry()
@@ -307,22 +341,30 @@ def fit_main(data, write, model="paper"):
     hist, flow, g = np.concatenate(hists), np.concatenate(flows), np.concatenate(gs)
     edges = CONTRAST_EDGES[model]
     cls = np.searchsorted(np.asarray(edges, np.float64), g, side="right")
-    Ps, tots = [], []
+    Ps, tots, P_all = [], [], []
     for c in range(len(edges) + 1):
         m = cls == c
         print(f"contrast class {c}: {int(m.sum())} frames")
-        N = accumulate(hist[m], flow[m], u_offset, u_count)
-        P, tot = table_from_counts(N)
-        filled = (tot >= MIN_CELL_WEIGHT).mean(axis=(1, 2))
-        print("  filled share per ψ node:", " ".join(f"{x:.2f}" for x in filled))
+        Nc = accumulate_classes(hist[m], flow[m], u_offset, u_count)
+        P, tot = class_tables(Nc)
+        P_all.append(table_from_counts(Nc.sum(axis=0))[0])
+        filled = (tot >= MIN_CELL_WEIGHT).mean(axis=(2, 3))
+        for g, row in enumerate(filled):
+            print(f"  gradient class {g}: filled share per ψ node:", " ".join(f"{x:.2f}" for x in row))
         Ps.append(P)
         tots.append(tot)
     P, tot = (Ps[0], tots[0]) if not edges else (np.stack(Ps), np.stack(tots))
+    prob_all = P_all[0] if not edges else np.stack(P_all)
     out = calibration_path(model)
     if write:
-        extra = {}
-        if model != "paper":  # the paper's table keeps its original layout, byte for byte
-            extra = dict(channels=np.array(params.channels, np.int64),
+        if GRADIENT_CLASS_TABLES[model]:
+            extra = {"gradient_class_steps": np.asarray(GRADIENT_CLASS_STEPS, np.int64),
+                     "prob_all": prob_all.astype(np.float32)}
+        else:  # one distribution for all classes (the summary sums the histogram's classes)
+            extra = {}
+            P, tot = prob_all, tot.sum(axis=-4)
+        if model != "paper":
+            extra.update(channels=np.array(params.channels, np.int64),
                          threshold_mode=np.array(params.threshold_mode), model=np.array(model),
                          contrast_edges=np.asarray(edges, np.float64))
         np.savez_compressed(
