@@ -68,6 +68,9 @@ class FlowEstimator:
         is reduced by the frame's mean brightness change over the channel's delay (at most
         θ), so an exposure drift does not favour one polarity of the states (see
         :class:`emdflow.EngineParams`).
+    gradient_classes : bool, optional
+        Bin the summary's evidence also by gradient strength (default False; the extended
+        model's summary table needs it, see :class:`emdflow.EngineParams`).
     device : str or int, optional
         OpenCL device: an index into :func:`emdflow.opencl_devices` or a substring of the
         platform/device name. Default: the ``EMDFLOW_OPENCL_DEVICE`` environment variable,
@@ -105,6 +108,7 @@ class FlowEstimator:
         threshold_min: float = 1.5,
         threshold_max: float = 10.0,
         brightness_compensation: bool = False,
+        gradient_classes: bool = False,
         device=None,
     ):
         for name, value in (("width", width), ("height", height)):
@@ -127,6 +131,7 @@ class FlowEstimator:
             threshold_min=threshold_min,
             threshold_max=threshold_max,
             brightness_compensation=bool(brightness_compensation),
+            gradient_classes=bool(gradient_classes),
         )
         if backend == "numpy":
             self._engine = ReferenceEngine(self.width, self.height, self.params)

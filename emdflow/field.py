@@ -47,7 +47,7 @@ class FlowField:
         Speed of each channel, px/frame (``u = sign(code) · speeds[|code| − 1]``).
     stats : ndarray of int64
         Per-frame counters (detections, textured and saturated pixels, changed states).
-    histogram : ndarray of int64, shape (2, 2·channels, HISTOGRAM_BINS)
+    histogram : ndarray of int64, shape (2, 2·channels, params.histogram_bins)
         Detections binned by axis, signed channel, gradient-strength class and gradient
         orientation (``class · ORIENTATION_BINS + orientation``; the summary's input; see
         :func:`emdflow.reference.summary_statistics`).

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .params import GRADIENT_CLASS_STEPS, HISTOGRAM_BINS, ORIENTATION_BINS, EngineParams
+from .params import ORIENTATION_BINS, EngineParams
 from .reference import POSITION_BINS, STAT_CONTRAST, STAT_FIRST_CHANGED
 
 __all__ = ["OpenCLEngine", "PackedCodes", "list_devices", "kernel_source"]
@@ -157,7 +157,7 @@ class _Layout:
         self.t_period = math.lcm(self.SAT_SLOTS, self.P_SLOTS, *self.rings)
         self.plane_words = (height + 2 * self.PADR) * self.NWP
         self.sat_elems = (height + 1) * self.SSTRIDE
-        self.hist_size = 2 * 2 * len(chans) * HISTOGRAM_BINS
+        self.hist_size = 2 * 2 * len(chans) * params.histogram_bins
         self.pos_size = 2 * 2 * len(chans) * POSITION_BINS
         self.n_fixed = STAT_FIRST_CHANGED + len(chans)
         self.n_stats = self.n_fixed + self.pos_size + self.HIST_COPIES * self.hist_size
@@ -191,8 +191,8 @@ class _Layout:
             "POS_BINS": POSITION_BINS,
             "FINEST_CHANNEL": chans.index((params.scales[0], 1)),
             "NBINS": ORIENTATION_BINS,
-            "NCLASS": len(GRADIENT_CLASS_STEPS) + 1,
-            "CLASS_STEPS": join(GRADIENT_CLASS_STEPS),
+            "NCLASS": len(params.class_steps) + 1,
+            "CLASS_STEPS": join(params.class_steps) or "0",
             "ORIENT_C": join(table[:, 0]),
             "ORIENT_S": join(table[:, 1]),
         }
@@ -408,7 +408,7 @@ class OpenCLEngine:
                                                     self.params.contrast_samples(lay.W, lay.H))
         positions = ints[lay.n_fixed : lay.n_fixed + lay.pos_size].astype(np.int64)
         copies = ints[lay.n_fixed + lay.pos_size :].reshape(lay.HIST_COPIES, lay.hist_size)
-        hist = copies.sum(axis=0, dtype=np.int64).reshape(2, 2 * n_ch, HISTOGRAM_BINS)
+        hist = copies.sum(axis=0, dtype=np.int64).reshape(2, 2 * n_ch, self.params.histogram_bins)
         return codes, stats, hist, positions.reshape(2, 2 * n_ch, POSITION_BINS)
 
     def step(self, frame: np.ndarray):

@@ -42,7 +42,7 @@ MODELS = {
     "paper": {},
     "extended": {"scales": (1, 3, 5, 7, 9, 11, 13, 15), "delays": (1, 2, 4),
                  "delay_scales": (1,), "threshold_mode": "adaptive",
-                 "brightness_compensation": True},
+                 "brightness_compensation": True, "gradient_classes": True},
 }
 
 #: Orientation bins over 180° used to summarise the gradient direction of detections.
@@ -53,8 +53,9 @@ ORIENTATION_BINS = 64
 #: by θ k², so it says which delays and scales *can* fire at a given speed: the code mixture
 #: of a class depends much less on the texture than the mixture of all detections.
 GRADIENT_CLASS_STEPS = (1, 2, 4)
-#: Bins per (axis, code) row of the detection histogram: class-major,
-#: ``bin = class · ORIENTATION_BINS + orientation``.
+#: Bins per (axis, code) row of the detection histogram with gradient classes: class-major,
+#: ``bin = class · ORIENTATION_BINS + orientation`` (without: ``ORIENTATION_BINS``; see
+#: :attr:`EngineParams.histogram_bins`).
 HISTOGRAM_BINS = (len(GRADIENT_CLASS_STEPS) + 1) * ORIENTATION_BINS
 #: Fixed-point scale of the orientation boundary table (cos/sin × 2**14).
 _ORIENT_ONE = 1 << 14
@@ -143,6 +144,11 @@ class EngineParams:
         channels' changes of 1–2 px of motion and the drift are of the same size. What is
         left of a gain step (the change is proportional to brightness, the offset is its
         mean) is caught by the exposure-step test.
+    gradient_classes : bool
+        Also bin the summary's evidence by the gradient strength of each detection
+        against the threshold (``GRADIENT_CLASS_STEPS``; the histogram then has
+        ``HISTOGRAM_BINS`` bins per row instead of ``ORIENTATION_BINS``). Off in the paper's
+        model, whose summary table has no classes; on in the extended one.
     """
 
     scales: tuple[int, ...] = (1, 3, 5, 7, 9, 11, 13)
@@ -156,6 +162,7 @@ class EngineParams:
     threshold_min: float = 1.5
     threshold_max: float = 10.0
     brightness_compensation: bool = False
+    gradient_classes: bool = False
 
     def __post_init__(self):
         if self.threshold_mode not in ("fixed", "adaptive"):
@@ -189,6 +196,16 @@ class EngineParams:
         object.__setattr__(self, "delay_scales", dscales)
 
     # ---- derived tables (computed once, on the host, shared by both backends) ----
+    @property
+    def class_steps(self) -> tuple[int, ...]:
+        """Steps of the gradient-strength classes (empty without ``gradient_classes``)."""
+        return GRADIENT_CLASS_STEPS if self.gradient_classes else ()
+
+    @property
+    def histogram_bins(self) -> int:
+        """Bins per (axis, code) row of the detection histogram."""
+        return (len(self.class_steps) + 1) * ORIENTATION_BINS
+
     @property
     def weights(self) -> tuple[int, ...]:
         """Integer prefilter weights (sum 256)."""

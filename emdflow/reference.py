@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .params import GRADIENT_CLASS_STEPS, HISTOGRAM_BINS, ORIENTATION_BINS, EngineParams
+from .params import ORIENTATION_BINS, EngineParams
 
 __all__ = [
     "DIRECTIONS",
@@ -289,7 +289,7 @@ def summary_statistics(
     Returns
     -------
     stats : ndarray of int64, shape (5 + n_channels,)
-    hist : ndarray of int64, shape (2, 2·n_channels, HISTOGRAM_BINS)
+    hist : ndarray of int64, shape (2, 2·n_channels, params.histogram_bins)
     positions : ndarray of int64, shape (2, 2·n_channels, POSITION_BINS)
     """
     channels = params.channels
@@ -315,7 +315,7 @@ def summary_statistics(
     stats[STAT_BRIGHTENING] = np.count_nonzero(states_now[finest] > 0)
     positions = np.zeros((2, 2 * len(channels), POSITION_BINS), np.int64)
 
-    hist = np.zeros((2, 2 * len(channels), HISTOGRAM_BINS), np.int64)
+    hist = np.zeros((2, 2 * len(channels), params.histogram_bins), np.int64)
     for axis, code in enumerate((u_code, v_code)):
         step = params.evidence_row_step(H)
         xstep = params.evidence_column_step(W)
@@ -352,7 +352,7 @@ def summary_statistics(
         strength = 512 * (np.abs(gxs) + np.abs(gys))[keep]
         unit = 2 * q * ks[keep] ** 2
         cls = np.zeros(strength.size, np.int64)
-        for m in GRADIENT_CLASS_STEPS:
+        for m in params.class_steps:
             cls += strength >= m * unit
         codes = 2 * chan[keep] + negative[keep]
         np.add.at(hist[axis], (codes, cls * ORIENTATION_BINS + bins), 1)

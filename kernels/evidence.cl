@@ -73,7 +73,9 @@ __attribute__((always_inline)) inline void run_flush(__global int *counts, bin_r
  * sign) of one axis into the position and orientation histograms. The gradient of a
  * scale-1 receptor image is the prefiltered image's own (from the ring of P; the tables
  * keep only the frames the larger scales need). */
+#if NCLASS > 1
 __constant int CSTEP[NCLASS - 1] = { CLASS_STEPS };
+#endif
 
 inline void bin_detections(__global int *positions, __global int *hist, __global const ushort *sat,
                            __global const uchar *P, int t, int theta_q,
@@ -110,11 +112,13 @@ inline void bin_detections(__global int *positions, __global int *hist, __global
             gy = box_at(S, bx, yd, r) - box_at(S, bx, yu, r);
         }
         if (gx == 0 && gy == 0) continue;
+        int cls = 0;
+#if NCLASS > 1
         /* gradient-strength class (|g|_1 < 2^17, 8 theta_q k^2 < 2^23: no overflow) */
         const int strength = 512 * ((gx < 0 ? -gx : gx) + (gy < 0 ? -gy : gy));
         const int unit = 2 * theta_q * k * k;
-        int cls = 0;
         for (int m = 0; m < NCLASS - 1; m++) cls += strength >= CSTEP[m] * unit;
+#endif
         run_count(hist, hist_run, ((axis * 2 * NCH + 2 * c + negative) * NCLASS + cls) * NBINS + orientation_bin(gx, gy));
     }
 }

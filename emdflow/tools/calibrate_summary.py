@@ -215,11 +215,11 @@ U_GRID = {"paper": (U_OFFSET, U_COUNT), "extended": (0.2, 48)}
 CONTRAST_EDGES = {"paper": (), "extended": (3.75,)}
 #: Per model, whether the table has one distribution per gradient-strength class of the
 #: detections (``emdflow.params.GRADIENT_CLASS_STEPS``). For the extended model they take
-#: the texture out of its slow channels' code mixture (random directions: 7.8 % / 2.2° →
-#: 8.2 % / 1.95°, 0.25 px/frame 33 % → 16 % against a table without them, both fitted on
-#: the same flights); for the paper's model they gained little (8.9 % / 2.37° → 8.6 % /
-#: 2.26°) at twice the summary's cost and a worse 1 px/frame, so its table has none and
-#: the summary sums the classes.
+#: much of the texture out of its slow channels' code mixture (random directions, both
+#: tables fitted on the same flights: 8.9 % / 2.21° → 8.2 % / 1.95°, 0.25 px/frame 24 % →
+#: 16 %); for the paper's model they gained little (8.9 % / 2.37° → 8.6 % / 2.26°) at twice
+#: the summary's cost and a worse 1 px/frame, so its table has none and the summary sums
+#: the classes.
 GRADIENT_CLASS_TABLES = {"paper": False, "extended": True}
 #: A cell needs this much detection weight to stand on its own (else: nearest filled cell).
 MIN_CELL_WEIGHT = 100.0
