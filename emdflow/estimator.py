@@ -6,7 +6,7 @@ import numpy as np
 
 from .field import FlowField
 from .params import EngineParams
-from .reference import STAT_BRIGHTENING, STAT_BRIGHTNESS, STAT_FIRST_CHANGED, ReferenceEngine
+from .reference import STAT_BRIGHTENING, STAT_STEP_CHANGED, ReferenceEngine
 
 __all__ = ["FlowEstimator", "BACKENDS"]
 
@@ -14,20 +14,16 @@ BACKENDS = ("opencl", "numpy")
 
 #: A frame where at least this share of the finest receptors changed, and nearly all the
 #: same way (brightening share above 1 - POLARITY or below POLARITY), is a global
-#: brightness step (auto-exposure, lights), not motion. With brightness compensation, so
-#: is a frame whose mean brightness moved by more than θ since the previous frame.
+#: brightness step (auto-exposure, lights), not motion. With brightness compensation the
+#: test reads the states that channel would have without it.
 STEP_CHANGED = 0.2
 STEP_POLARITY = 0.1
 
 
-def _is_brightness_step(stats, params, pixels: int, previous_brightness, theta_q: int) -> bool:
-    # with brightness compensation the states no longer show a step (its mean is taken
-    # out, what is left of a gain step has both polarities): the mean itself tells
-    if (params.brightness_compensation and previous_brightness is not None
-            and abs(int(stats[STAT_BRIGHTNESS]) - previous_brightness) > theta_q):
-        return True
-    c = params.channels.index((params.scales[0], 1))
-    changed = int(stats[STAT_FIRST_CHANGED + c])
+def _is_brightness_step(stats, pixels: int) -> bool:
+    # the finest one-frame channel's states *without* brightness compensation (which
+    # takes a step's mean out; what is left of a gain step has both polarities)
+    changed = int(stats[STAT_STEP_CHANGED])
     if changed < STEP_CHANGED * pixels:
         return False
     bright = int(stats[STAT_BRIGHTENING]) / changed
@@ -141,7 +137,6 @@ class FlowEstimator:
             self._engine = OpenCLEngine(self.width, self.height, self.params, device=device)
         self._frames = 0
         self._last_step = None
-        self._last_brightness = None
 
     def _check(self, frame) -> np.ndarray:
         expected = f"a 2-D uint8 array of shape ({self.height}, {self.width})"
@@ -176,10 +171,8 @@ class FlowEstimator:
         # the codes stay behind decode() (bit-packed on OpenCL) until the dense field is read
         packed, stats, hist, positions = self._engine.step_packed(frame)
         self._frames += 1
-        if _is_brightness_step(stats, self.params, self.width * self.height, self._last_brightness,
-                               self._engine.last_theta_q):
+        if _is_brightness_step(stats, self.width * self.height):
             self._last_step = self._frames
-        self._last_brightness = int(stats[STAT_BRIGHTNESS])
         # the step's states sit in the templates of this frame and the next two
         in_templates = self._last_step is not None and self._frames - self._last_step < 3
         return FlowField(None, None, stats, hist, self.params, self._frames, positions=positions,
@@ -190,7 +183,6 @@ class FlowEstimator:
         self._engine.reset()
         self._frames = 0
         self._last_step = None
-        self._last_brightness = None
 
     @property
     def frames_seen(self) -> int:

@@ -143,7 +143,7 @@ class EngineParams:
         of one polarity and raises the other's: at a drift of 20 % over a flight, the slow
         channels' changes of 1–2 px of motion and the drift are of the same size. What is
         left of a gain step (the change is proportional to brightness, the offset is its
-        mean) is caught by the exposure-step test.
+        mean) is caught by the exposure-step test, which counts the uncompensated states.
     gradient_classes : bool
         Also bin the summary's evidence by the gradient strength of each detection
         against the threshold (``GRADIENT_CLASS_STEPS``; the histogram then has

@@ -46,7 +46,7 @@ __all__ = [
     "STAT_SATURATED",
     "STAT_BRIGHTENING",
     "STAT_CONTRAST",
-    "STAT_BRIGHTNESS",
+    "STAT_STEP_CHANGED",
     "STAT_FIRST_CHANGED",
     "POSITION_BINS",
 ]
@@ -59,10 +59,13 @@ STAT_U_DETECTIONS = 0  #: pixels with a horizontal detection
 STAT_V_DETECTIONS = 1  #: pixels with a vertical detection
 STAT_TEXTURED = 2  #: sampled pixels with gradient above the threshold (see summary_statistics)
 STAT_SATURATED = 3  #: sampled pixels at 0..2 or 253..255
-STAT_BRIGHTENING = 4  #: positive states of the finest one-frame channel (brightness steps)
+#: positive states of the finest one-frame channel, without brightness compensation
+#: (the exposure-step test)
+STAT_BRIGHTENING = 4
 STAT_CONTRAST = 5  #: sum of |ΔxP| + |ΔyP| over the textured statistic's sample
-#: mean of the prefiltered frame, 1/256 gray levels (with brightness compensation, else 0)
-STAT_BRIGHTNESS = 6
+#: nonzero states of the finest one-frame channel without brightness compensation (the
+#: exposure-step test: a step's mean is taken out of the compensated states)
+STAT_STEP_CHANGED = 6
 STAT_FIRST_CHANGED = 7  #: then one count of nonzero states per channel
 #: Detections are also counted by position: x (horizontal) or y (vertical) in this many bins.
 POSITION_BINS = 16
@@ -261,6 +264,7 @@ def summary_statistics(
     receptors_mid: dict[int, np.ndarray],
     states_now: list[np.ndarray],
     theta_q: int | None = None,
+    step_states: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame evidence for the summary (identical in both backends).
 
@@ -272,8 +276,8 @@ def summary_statistics(
     * saturated pixels: on even rows, raw value ≤ 2 or ≥ 253;
     * positive states of the finest one-frame channel (a global brightness step turns
       most of them on at once);
-    * the prefiltered frame's mean in 1/256 gray levels, with brightness compensation
-      (the exposure-step test compares it frame to frame), else 0;
+    * nonzero and positive states of the finest one-frame channel without brightness
+      compensation (``step_states``; the exposure-step test);
     * nonzero states per channel;
     * the detection histogram ``hist[axis, code, class · ORIENTATION_BINS + orientation]``
       (``class`` the gradient-strength class, see ``GRADIENT_CLASS_STEPS``): detections on every
@@ -305,14 +309,14 @@ def summary_statistics(
         grad = (gx + gy)[1::2]  # rows 2, 4, …
         stats[STAT_TEXTURED] = np.count_nonzero(grad > params.texture_threshold_for(q))
         stats[STAT_CONTRAST] = int(grad.sum())
-    if params.brightness_compensation:
-        stats[STAT_BRIGHTNESS] = int(p_now.sum(dtype=np.int64)) * 256 // (H * W)
     even = frame[0::2]
     stats[STAT_SATURATED] = np.count_nonzero((even <= 2) | (even >= 253))
     for c, s in enumerate(states_now):
         stats[STAT_FIRST_CHANGED + c] = np.count_nonzero(s)
     finest = channels.index((params.scales[0], 1))
-    stats[STAT_BRIGHTENING] = np.count_nonzero(states_now[finest] > 0)
+    step = states_now[finest] if step_states is None else step_states
+    stats[STAT_STEP_CHANGED] = np.count_nonzero(step)
+    stats[STAT_BRIGHTENING] = np.count_nonzero(step > 0)
     positions = np.zeros((2, 2 * len(channels), POSITION_BINS), np.int64)
 
     hist = np.zeros((2, 2 * len(channels), params.histogram_bins), np.int64)
@@ -394,6 +398,7 @@ class ReferenceEngine:
         self._brightness.append(int(p_now.sum(dtype=np.int64)) if prm.brightness_compensation else 0)
         del self._brightness[: -(prm.max_delay + 1)]
         zeros = np.zeros(frame.shape, np.int8)
+        step_states = None  # uncompensated finest states (None: the channel's own)
         pos = {0: [], 1: []}
         neg = {0: [], 1: []}
         self.states = []
@@ -406,6 +411,8 @@ class ReferenceEngine:
                 s_now = ternary_states(change - offset, prm.box_threshold(k, self.theta_q))
                 if offset:  # no receptor where the block leaves the frame (change 0 there)
                     s_now[box_sums(np.ones(frame.shape, np.int8), k) == 0] = 0
+                if (k, d) == (prm.scales[0], 1):  # the exposure-step test's states
+                    step_states = ternary_states(change, prm.box_threshold(k, self.theta_q))
             else:
                 s_now = zeros  # no frame D steps back yet: no change is known
             hist = self._state_history[(k, d)]
@@ -426,7 +433,7 @@ class ReferenceEngine:
         u_code = fuse_channels(pos[0], neg[0])
         v_code = fuse_channels(pos[1], neg[1])
         stats, hist, positions = summary_statistics(
-            prm, frame, p_now, u_code, v_code, receptors_mid, self.states, self.theta_q
+            prm, frame, p_now, u_code, v_code, receptors_mid, self.states, self.theta_q, step_states
         )
         self.last_theta_q = self.theta_q
         self.theta_q = prm.next_threshold_q(int(stats[STAT_CONTRAST]), prm.contrast_samples(*frame.shape[::-1]))

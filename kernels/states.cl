@@ -58,10 +58,6 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
     __global int *stats = (__global int *)(result + STATS_OFFSET);
     __global const ushort *S_now = sat + (t % SAT_SLOTS) * SAT_SIZE;
     __global const uchar *P_now = P + (t % P_SLOTS) * P_SIZE;
-#if COMPENSATE
-    if (y == 0)  /* the frame's mean brightness, 1/256 gray levels (exposure-step test) */
-        stats[STAT_BRIGHTNESS] = (int)((ulong)bright[t % P_SLOTS] * 256 / ((ulong)W * H));
-#endif
 
     /* unrolled: k, r and the load offsets become constants */
     #pragma unroll
@@ -94,15 +90,22 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
 #endif
         /* words from i_edge on hold pixels past W - 1 - r; word 0 holds x < r */
         const int i_edge = (W - r) / 32;
-        int changed = 0, brightening = 0;
+        /* the exposure-step test counts the finest one-frame channel's states without the
+         * compensation (a step's mean would be taken out of them) */
+        const int uncompensated = COMPENSATE && c == FINEST_CHANNEL;
+        int changed = 0, step_changed = 0, brightening = 0;
         for (int i = 0; i < NW; i++) {
             const int x = i * 32;
-            uint pw, nw;
+            uint pw, nw, upw = 0, unw = 0;
             if (k == 1) {
                 /* a 1x1 receptor is the prefiltered pixel itself: P_t - P_(t-D), byte-wise */
                 __global const uchar *pn = P_now + y * PSTRIDE + PPAD + x, *pt = P_then + y * PSTRIDE + PPAD + x;
                 pw = above32_bytes(pn, pt, Tp);
                 nw = above32_bytes(pt, pn, Tn);
+                if (uncompensated) {
+                    upw = above32_bytes(pn, pt, T);
+                    unw = above32_bytes(pt, pn, T);
+                }
             } else if (k <= 11) {
                 /* |now - then| <= 121 * 255 < 2^15: the int16 difference is exact */
                 const short Tps = (short)CLAMPI(Tp, -32767, 32767), Tns = (short)CLAMPI(Tn, -32767, 32767);
@@ -116,23 +119,40 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
                 }
                 pw = pack32(d0 > Tps, d1 > Tps);
                 nw = pack32(d0 < (short)-Tns, d1 < (short)-Tns);
+                if (uncompensated) {
+                    const short Ts = (short)CLAMPI(T, 0, 32767);
+                    upw = pack32(d0 > Ts, d1 > Ts);
+                    unw = pack32(d0 < (short)-Ts, d1 < (short)-Ts);
+                }
             } else {
                 const ushort16 now0 = box16(S_now, y, x, r), then0 = box16(S_then, y, x, r);
                 const ushort16 now1 = box16(S_now, y, x + 16, r), then1 = box16(S_then, y, x + 16, r);
                 pw = above32_u16(now0, then0, now1, then1, Tp);
                 nw = above32_u16(then0, now0, then1, now1, Tn);
+                if (uncompensated) {
+                    upw = above32_u16(now0, then0, now1, then1, T);
+                    unw = above32_u16(then0, now0, then1, now1, T);
+                }
+            }
+            if (!uncompensated) {
+                upw = pw;
+                unw = nw;
             }
             if (i == 0 || i >= i_edge) {
                 const uint valid = bit_range(r - x, W - 1 - r - x);
                 pw &= valid;
                 nw &= valid;
+                upw &= valid;
+                unw &= valid;
             }
             pos_row[i] = pw;
             neg_row[i] = nw;
             changed += POPCOUNT(pw | nw);
-            brightening += POPCOUNT(pw);
+            step_changed += POPCOUNT(upw | unw);
+            brightening += POPCOUNT(upw);
         }
         if (changed) ATOMIC_ADD(stats + STAT_CHANGED + c, changed);
+        if (c == FINEST_CHANNEL && step_changed) ATOMIC_ADD(stats + STAT_STEP_CHANGED, step_changed);
         if (c == FINEST_CHANNEL && brightening) ATOMIC_ADD(stats + STAT_BRIGHTENING, brightening);
     }
 
