@@ -138,8 +138,10 @@ texture (gravel and grass 20–25 % slow, brick and camera ~10 %; the stochastic
 calibration textures took that from 30–35 %); 5–7 px/frame 8–10 % / 1.7–2.6°, 9–11
 px/frame 11–13 % / 3.6–3.8°, 13 px/frame 15 % / 4.9° (without the scale-15 channel, as
 for the paper's model: 29–40 % / 7–10°). Quality bands (random set): 192–255 → 6.5 %,
-128–191 → 9.3 %, 64–127 → 19 %, 1–63 → 28 %. Cost ≈ 0.6–0.8 ms per call (the curves
-of up to four classes per row).
+128–191 → 9.3 %, 64–127 → 19 %, 1–63 → 28 %. Cost ≈ 0.7–1.7 ms per call (the curves
+of up to four classes per row: ~2 000 nonzero counts, each a 240-entry table row; 0.4 ms
+without the classes, ``EngineParams.gradient_classes=False``, which reads the table's
+all-classes distribution).
 
 References
 ----------
