@@ -61,8 +61,8 @@ class FlowEstimator:
         Gain and limits of the adaptive threshold, gray levels.
     brightness_compensation : bool, optional
         Luminance adaptation (default False, the paper): each channel's receptor change
-        is reduced by the frame's mean brightness change over the channel's delay (at most
-        θ), so an exposure drift does not favour one polarity of the states (see
+        is reduced by the frame's mean brightness change over the channel's delay, so an
+        exposure drift does not favour one polarity of the states (see
         :class:`emdflow.EngineParams`).
     gradient_classes : bool, optional
         Bin the summary's evidence also by gradient strength (default False; the extended

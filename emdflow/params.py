@@ -36,8 +36,9 @@ __all__ = ["EngineParams", "gaussian_weights", "ORIENTATION_BINS", "GRADIENT_CLA
 #: delays 2 and 4 at scale 1 (1/2 and 1/4 px/frame: hovering drift), a scale-15 channel
 #: (the top of the 1–13 px/frame range is then inside a channel's band, not at the end
 #: of the fastest one: 13 px/frame reads within 15 % instead of 33 %, for 5–7 % more
-#: engine time), the contrast-adaptive threshold and brightness compensation (exposure
-#: drift). The daemon, the benchmark and the calibration tools all use this.
+#: engine time), the contrast-adaptive threshold, brightness compensation (exposure
+#: drift) and the gradient-strength classes of the summary's evidence. The daemon, the
+#: benchmark and the calibration tools all use this.
 MODELS = {
     "paper": {},
     "extended": {"scales": (1, 3, 5, 7, 9, 11, 13, 15), "delays": (1, 2, 4),
