@@ -140,3 +140,11 @@ def test_engine_model_selects_the_estimator_options(tmp_path):
     assert 0.25 in est.params.speeds and 15 in est.params.scales and est.params.threshold == 6.0
     with pytest.raises(ConfigError, match="model"):
         load_config(_write(tmp_path, '[engine]\nmodel = "fancy"\n'))
+    # the summary's gradient classes can be turned off (slow boards); the paper has none
+    assert options.get("gradient_classes") is True
+    cheap = load_config(_write(tmp_path, '[engine]\ngradient_classes = false\n')).engine.estimator_options()
+    assert cheap["gradient_classes"] is False and cheap["brightness_compensation"] is True
+    est = emdflow.FlowEstimator(64, 48, backend="numpy", **cheap)
+    assert est.params.histogram_bins == 64
+    paper_cheap = load_config(_write(tmp_path, '[engine]\nmodel = "paper"\ngradient_classes = false\n'))
+    assert paper_cheap.engine.estimator_options() == {"threshold": 5.0}
