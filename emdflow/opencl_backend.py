@@ -134,6 +134,7 @@ class _Layout:
     def __init__(self, width: int, height: int, params: EngineParams):
         self.W, self.H = width, height
         self.NW = _ceil(width, 32)
+        self.NSTRIPS = _ceil(width, 16)  # 16-column strips of the prefilter
         self.NWP = _ceil(self.NW, 8) * 8 + 2  # 8-word vectors, a zero word each side
         self.PADR = 2 * max(params.scales)
         self.PSTRIDE = self.PPAD + self.NW * 32 + 32
@@ -178,7 +179,7 @@ class _Layout:
             "P_SIZE": self.P_SIZE, "P_SLOTS": self.P_SLOTS,
             "SSTRIDE": self.SSTRIDE, "SPAD": self.SPAD, "SAT_SLOTS": self.SAT_SLOTS, "DSAT": self.DSAT,
             "NCH": len(chans),
-            "COMPENSATE": int(params.brightness_compensation), "NSTRIPS": _ceil(width, 16),
+            "COMPENSATE": int(params.brightness_compensation), "NSTRIPS": self.NSTRIPS,
             "CH_K": join(k for k, _ in chans), "CH_D": join(d for _, d in chans),
             "CH_RING": join(self.rings), "CH_BASE": join(self.bases),
             "RADIUS": len(w) // 2, "WEIGHTS": join(w),
@@ -318,7 +319,7 @@ class OpenCLEngine:
         self.result = cl.Buffer(ctx, mf.READ_WRITE, lay.result_bytes)
         # brightness compensation: per slot of P the frame's pixel sum, then the
         # prefilter's per-strip sums (see prefilter.cl, integral.cl)
-        self.bright_buf = cl.Buffer(ctx, mf.READ_WRITE, 4 * lay.P_SLOTS * (1 + _ceil(width, 16)))
+        self.bright_buf = cl.Buffer(ctx, mf.READ_WRITE, 4 * lay.P_SLOTS * (1 + lay.NSTRIPS))
         debug_words = 4 * len(params.channels) * height * lay.NWP if debug else 1
         self.debug_buf = cl.Buffer(ctx, mf.READ_WRITE, 4 * debug_words)
         for buf in (self.frame_buf, self.p_buf, self.sat_buf, self.dsat_buf):

@@ -136,6 +136,17 @@ def receptor_change(p_now: np.ndarray, p_before: np.ndarray, k: int) -> np.ndarr
     return box_sums(p_now.astype(np.int64) - p_before, k)
 
 
+def _outside_receptors(shape: tuple[int, int], k: int) -> np.ndarray:
+    """Pixels whose ``k × k`` block does not lie wholly inside the frame (where
+    :func:`box_sums` gives 0): a boolean mask."""
+    H, W = shape
+    r = k // 2
+    outside = np.ones((H, W), bool)
+    if H >= k and W >= k:
+        outside[r : H - r, r : W - r] = False
+    return outside
+
+
 def ternary_states(change: np.ndarray, box_threshold: int) -> np.ndarray:
     """Ternary template-model states (paper §2): +1 if ``change > T``, −1 if ``< −T``, else 0.
 
@@ -274,10 +285,9 @@ def summary_statistics(
       would change a scale-1 receptor by more than θ; and the sum of that quantity over
       the same pixels (the contrast statistic of the adaptive threshold);
     * saturated pixels: on even rows, raw value ≤ 2 or ≥ 253;
-    * positive states of the finest one-frame channel (a global brightness step turns
-      most of them on at once);
-    * nonzero and positive states of the finest one-frame channel without brightness
-      compensation (``step_states``; the exposure-step test);
+    * nonzero and positive states of the finest one-frame channel, without brightness
+      compensation (``step_states``; a global brightness step turns most of them on at
+      once, one way: the exposure-step test);
     * nonzero states per channel;
     * the detection histogram ``hist[axis, code, class · ORIENTATION_BINS + orientation]``
       (``class`` the gradient-strength class, see ``GRADIENT_CLASS_STEPS``): detections on every
@@ -292,7 +302,7 @@ def summary_statistics(
 
     Returns
     -------
-    stats : ndarray of int64, shape (5 + n_channels,)
+    stats : ndarray of int64, shape (STAT_FIRST_CHANGED + n_channels,)
     hist : ndarray of int64, shape (2, 2·n_channels, params.histogram_bins)
     positions : ndarray of int64, shape (2, 2·n_channels, POSITION_BINS)
     """
@@ -398,7 +408,7 @@ class ReferenceEngine:
         self._brightness.append(int(p_now.sum(dtype=np.int64)) if prm.brightness_compensation else 0)
         del self._brightness[: -(prm.max_delay + 1)]
         zeros = np.zeros(frame.shape, np.int8)
-        step_states = None  # uncompensated finest states (None: the channel's own)
+        step_states = None  # the finest channel's uncompensated states (None: its own)
         pos = {0: [], 1: []}
         neg = {0: [], 1: []}
         self.states = []
@@ -407,12 +417,13 @@ class ReferenceEngine:
         for c, (k, d) in enumerate(prm.channels):
             if len(self._p_history) > d:
                 change = receptor_change(p_now, self._p_history[-1 - d], k)
+                T = prm.box_threshold(k, self.theta_q)
                 offset = prm.brightness_offset(k, self._brightness[-1] - self._brightness[-1 - d], p_now.size)
-                s_now = ternary_states(change - offset, prm.box_threshold(k, self.theta_q))
-                if offset:  # no receptor where the block leaves the frame (change 0 there)
-                    s_now[box_sums(np.ones(frame.shape, np.int8), k) == 0] = 0
-                if (k, d) == (prm.scales[0], 1):  # the exposure-step test's states
-                    step_states = ternary_states(change, prm.box_threshold(k, self.theta_q))
+                s_now = ternary_states(change - offset, T)
+                if offset:
+                    s_now[_outside_receptors(s_now.shape, k)] = 0  # no receptor: change 0 there
+                    if (k, d) == (prm.scales[0], 1):  # the exposure-step test's states
+                        step_states = ternary_states(change, T)
             else:
                 s_now = zeros  # no frame D steps back yet: no change is known
             hist = self._state_history[(k, d)]

@@ -105,8 +105,7 @@ restores the untempered likelihood; with one fine pass instead of two: 9.1 %, 1.
 9.1 %, 2.69° / 9.2 %, 2.42°.) 1–7 px/frame are within 5–12 % and 1–3°; at 9–13 px/frame
 only the top scales fire: 8–18 % and 2–7°, and 13 px/frame 25–40 % (the quality says so:
 frames of quality < 64 have a median error of ~30–40 %). Brick (few, aligned, periodic
-edges) is the hardest texture. Cost ≈ 0.29 ms per call on the 2-core host (0.31–0.39 ms
-now that the classes are summed first; IoC guess
+edges) is the hardest texture. Cost ≈ 0.29–0.31 ms per call on the 2-core host (IoC guess
 ~0.03 ms, per-frame curves ~0.04 ms, search ~0.16 ms, of which the second fine pass
 ~0.055 ms); the former 4-level search took ~0.8 ms.
 
@@ -138,10 +137,10 @@ texture (gravel and grass 20–25 % slow, brick and camera ~10 %; the stochastic
 calibration textures took that from 30–35 %); 5–7 px/frame 8–10 % / 1.7–2.6°, 9–11
 px/frame 11–13 % / 3.6–3.8°, 13 px/frame 15 % / 4.9° (without the scale-15 channel, as
 for the paper's model: 29–40 % / 7–10°). Quality bands (random set): 192–255 → 6.5 %,
-128–191 → 9.3 %, 64–127 → 19 %, 1–63 → 28 %. Cost ≈ 0.7–1.7 ms per call (the curves
-of up to four classes per row: ~2 000 nonzero counts, each a 240-entry table row; 0.4 ms
-without the classes, ``EngineParams.gradient_classes=False``, which reads the table's
-all-classes distribution).
+128–191 → 9.3 %, 64–127 → 19 %, 1–63 → 28 %. Cost ≈ 0.7–1.0 ms per call at 640×480
+(the curves of up to four classes per row: ~2 000 nonzero counts, each a 240-entry table
+row), against 0.3 ms without the classes (``EngineParams.gradient_classes=False``, which
+reads the table's all-classes distribution), measured in the same minute.
 
 References
 ----------
@@ -456,6 +455,10 @@ class _LikelihoodModel:
         beta = np.sqrt(np.clip(1.0 - vn * vn, 0.0, 1.0))
         bi = np.clip(np.searchsorted(beta_nodes, beta, side="right") - 1, 0, n_beta - 2)
         self.bi = bi.astype(np.int32)
+        # where each row's curves start in a frame's curves with every base row present
+        # (a table without classes): the β-node row of (row, sign) and the u offset of row
+        self.first_all = (np.arange(n_rows)[:, None] * 2 + np.arange(2)[None, :]) * n_beta
+        self.jrow_all = np.arange(n_rows) * (2 * n_u)
         self.bf = ((beta - beta_nodes[bi]) / (beta_nodes[bi + 1] - beta_nodes[bi])).astype(np.float32)
         self.inv_du = np.float32(1.0 / self.du)
         self.u0_du = np.float32(self.u0 / self.du)
@@ -584,12 +587,12 @@ def _row_curves(model: _LikelihoodModel, hist: np.ndarray, exponent: float):
         w = h.astype(np.float32)
         if exponent != 1.0:
             w *= (np.maximum(n_row, 1.0) ** (exponent - 1.0)).astype(np.float32)[:, None, None]
-        R = model.n_base
-        curves = np.matmul(w, model.logp[:-1].reshape(R, n_cat, -1))
-        return (curves.reshape(-1, model.n_u), np.arange(R)), count, active
+        curves = np.matmul(w, model.logp[:-1].reshape(model.n_base, n_cat, -1))
+        frame = (curves.reshape(-1, model.n_u), None, model.first_all, model.jrow_all)
+        return frame, count, active
     flat = np.flatnonzero(h)  # sorted by (base row, sign, class, code)
     if flat.size == 0:
-        return (np.zeros((0, model.n_u), np.float32), np.zeros(0, np.intp)), count, active
+        return _frame_of_rows(model, np.zeros((0, model.n_u), np.float32), np.zeros(0, np.intp)), count, active
     per_sign = C * n_cat
     key, within = np.divmod(flat, per_sign)  # key = base row · 2 + sign
     rowcls = (key >> 1) * C + within // n_cat
@@ -611,25 +614,35 @@ def _row_curves(model: _LikelihoodModel, hist: np.ndarray, exponent: float):
     base = np.unique(keys >> 1)
     curves = np.zeros((base.size * 2, sums.shape[1]), np.float32)
     curves[np.searchsorted(base, keys >> 1) * 2 + (keys & 1)] = sums
-    return (curves.reshape(-1, model.n_u), base), count, active
+    return _frame_of_rows(model, curves.reshape(-1, model.n_u), base), count, active
+
+
+def _frame_of_rows(model: _LikelihoodModel, curves: np.ndarray, base: np.ndarray):
+    """A frame's curves of the base rows ``base`` with their layout, once per frame:
+    ``(curves, base, first β-node row of each (row, sign), u offset of each row)``."""
+    n_act = base.size
+    first = (np.arange(n_act)[:, None] * 2 + np.arange(2)[None, :]) * model.n_beta
+    return curves, base, first, np.arange(n_act) * (2 * model.n_u)
 
 
 def _loglik_grid(model: _LikelihoodModel, frame, log_s: float, d0: int, level):
     """Log-likelihood on one search level around (log speed ``log_s``, direction index
-    ``d0``), with each row's β taken at ``d0``: shape (speeds, directions)."""
-    curves, base = frame
-    n_act = base.size
+    ``d0``), with each row's β taken at ``d0``: shape (speeds, directions). ``frame`` comes
+    from :func:`_row_curves` (``base`` None: every base row, in order)."""
+    curves, base, first, jrow = frame
     es, doff = level[3], level[4]
-    # the β node below each (active row, sign) curve, and the weight of the one above
-    first = (np.arange(n_act)[:, None] * 2 + np.arange(2)[None, :]) * model.n_beta
-    bk = (first + model.bi[d0 + _PAD].take(base)[:, None]).ravel()
+    ds = doff + d0  # tables are padded: no wrap-around
+    bi, bf = model.bi[d0 + _PAD], model.bf[d0 + _PAD]
+    absg, neg = model.absg.take(ds, axis=0), model.neg.take(ds, axis=0)  # (directions, R)
+    if base is not None:
+        bi, bf, absg, neg = bi.take(base), bf.take(base), absg.take(base, axis=1), neg.take(base, axis=1)
+    # the β node below each (row, sign) curve, and the weight of the one above
+    bk = (first + bi[:, None]).ravel()
     cur = curves.take(bk, axis=0)  # (A · 2, U) at the β node below ...
     hi = curves.take(bk + 1, axis=0)  # ... and above
     hi -= cur
-    hi *= np.repeat(model.bf[d0 + _PAD].take(base), 2)[:, None]
+    hi *= np.repeat(bf, 2)[:, None]
     cur += hi  # β-interpolated curves
-    ds = doff + d0  # tables are padded: no wrap-around
-    absg = model.absg.take(ds, axis=0).take(base, axis=1)  # (directions, A)
     x = np.multiply.outer(es * math.exp(log_s), absg)  # (S, directions, A) |c|
     x += model.u_offset
     np.log(x, out=x)
@@ -640,7 +653,7 @@ def _loglik_grid(model: _LikelihoodModel, frame, log_s: float, d0: int, level):
     j = x.astype(np.intp)
     x -= j
     # each (active row, sign) curve is U long; c < 0 reads the row's second half
-    j += np.arange(n_act) * (2 * model.n_u) + model.neg.take(ds, axis=0).take(base, axis=1) * model.n_u
+    j += jrow + neg * model.n_u
     lo = cur.take(j)
     j += 1
     hi = cur.take(j)
@@ -733,7 +746,8 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
     q_texture = min(1.0, textured / opts.full_textured)
     # the IoC guess (and a table without gradient-strength classes) sums the classes
     full = field.histogram
-    hist = full.reshape(full.shape[0], full.shape[1], -1, ORIENTATION_BINS).sum(axis=2)
+    hist = full if full.shape[-1] == ORIENTATION_BINS else (
+        full.reshape(full.shape[0], full.shape[1], -1, ORIENTATION_BINS).sum(axis=2))
     flat = hist.ravel()
     used = np.flatnonzero(flat)
     counts = flat[used].astype(np.float64)

@@ -65,7 +65,7 @@ class EngineConfig:
     model: str = _opt("extended", choices=tuple(MODELS), doc="detector model")
     threshold: float = _opt(5.0, minimum=0.5, maximum=100.0, doc="ternary threshold, gray levels")
     # the extended model's summary reads its evidence per gradient-strength class (more
-    # accurate direction and slow speeds; the summary costs ~1.7 ms instead of ~0.4 ms per
+    # accurate direction and slow speeds; the summary costs ~0.7-1.0 ms instead of ~0.3 ms per
     # frame at 640x480 on a 2-core x86): false trades that accuracy for the time on slow boards
     gradient_classes: bool = _opt(True, doc="summary evidence per gradient-strength class")
 

@@ -81,7 +81,7 @@ from pathlib import Path
 
 import numpy as np
 
-from emdflow.params import GRADIENT_CLASS_STEPS
+from emdflow.params import GRADIENT_CLASS_STEPS, ORIENTATION_BINS
 from emdflow.params import MODELS as _MODELS
 from emdflow.tools import interp_weights
 
@@ -244,19 +244,20 @@ def u_nodes(u_offset=U_OFFSET, u_count=U_COUNT):
 def accumulate_classes(hist, flow, u_offset=U_OFFSET, u_count=U_COUNT):
     """Detection weight ``N[gradient class, ψ, β, u, category]`` (see :func:`accumulate`)."""
     hist = np.asarray(hist)
-    n_classes = hist.shape[-1] // 64
-    return np.stack([accumulate(hist[..., c * 64:(c + 1) * 64], flow, u_offset, u_count)
-                     for c in range(n_classes)])
+    bins = ORIENTATION_BINS
+    return np.stack([accumulate(hist[..., c * bins:(c + 1) * bins], flow, u_offset, u_count)
+                     for c in range(hist.shape[-1] // bins)])
 
 
 def class_tables(Nc):
-    """Conditional probabilities ``P[gradient class, ψ, β, u, category]``: a cell of a class
-    with less than ``MIN_CELL_WEIGHT`` of data takes the all-classes table's cell."""
-    P_all, tot_all = table_from_counts(Nc.sum(axis=0))
+    """Conditional probabilities ``P[gradient class, ψ, β, u, category]`` and their weights,
+    plus the all-classes table ``P_all[ψ, β, u, category]``: a cell of a class with less
+    than ``MIN_CELL_WEIGHT`` of data takes the all-classes table's cell."""
+    P_all, _ = table_from_counts(Nc.sum(axis=0))
     tot = Nc.sum(axis=-1)
     ok = (tot >= MIN_CELL_WEIGHT)[..., None]
     P = np.where(ok, Nc / np.maximum(tot, 1e-12)[..., None], P_all[None])
-    return P, tot
+    return P, tot, P_all
 
 
 def accumulate(hist, flow, u_offset=U_OFFSET, u_count=U_COUNT):
@@ -267,7 +268,7 @@ def accumulate(hist, flow, u_offset=U_OFFSET, u_count=U_COUNT):
     every histogram bin is spread over the 8 surrounding grid nodes (trilinear weights).
     """
     hist = np.asarray(hist, np.float64)  # (frames, 2, codes, classes · 64)
-    hist = hist.reshape(*hist.shape[:3], -1, 64).sum(axis=3)  # the classes summed
+    hist = hist.reshape(*hist.shape[:3], -1, ORIENTATION_BINS).sum(axis=3)  # the classes summed
     flow = np.asarray(flow, np.float64)
     n_frames, _, n_codes, n_bins = hist.shape
     normals, n_axis, psi = crossing_geometry()
@@ -346,8 +347,8 @@ def fit_main(data, write, model="paper"):
         m = cls == c
         print(f"contrast class {c}: {int(m.sum())} frames")
         Nc = accumulate_classes(hist[m], flow[m], u_offset, u_count)
-        P, tot = class_tables(Nc)
-        P_all.append(table_from_counts(Nc.sum(axis=0))[0])
+        P, tot, P_all_c = class_tables(Nc)
+        P_all.append(P_all_c)
         filled = (tot >= MIN_CELL_WEIGHT).mean(axis=(2, 3))
         for g, row in enumerate(filled):
             print(f"  gradient class {g}: filled share per ψ node:", " ".join(f"{x:.2f}" for x in row))
