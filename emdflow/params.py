@@ -24,6 +24,7 @@ at the scales in ``delay_scales``.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import numpy as np
@@ -212,14 +213,15 @@ class EngineParams:
         """Integer prefilter weights (sum 256)."""
         return gaussian_weights(int(self.prefilter_size))
 
-    @property
+    # channels and speeds are read every frame (FlowField, summary): computed once
+    @functools.cached_property
     def channels(self) -> tuple[tuple[int, int], ...]:
         """(scale, delay) pairs, sorted by increasing speed ``k / D``."""
         chans = [(k, 1) for k in self.scales]
         chans += [(k, d) for d in self.delays if d > 1 for k in self.delay_scales]
         return tuple(sorted(chans, key=lambda c: (c[0] / c[1], c[0])))
 
-    @property
+    @functools.cached_property
     def speeds(self) -> tuple[float, ...]:
         """Speed of each channel in px/frame, in channel order."""
         return tuple(k / d for k, d in self.channels)
