@@ -15,7 +15,7 @@ median ms/frame over the blocks and ratios measured in the same run:
 
 ``emdflow bench --stages`` prints instead where one frame's time goes: the device time of
 each command (upload, the four kernels, download) from OpenCL profiling events, the gaps
-between them and the host's wall time per frame.
+between them, the host's wall time per frame and the time of ``summarize`` after it.
 """
 
 from __future__ import annotations
@@ -135,7 +135,8 @@ def profile_stages(width: int, height: int, *, frames: int = 200, backend_kwargs
     time for the whole ``step`` (upload to downloaded result), ``"gaps"`` what the device
     timeline spends between the first command's start and the last one's end outside
     the commands (scheduling, thread wake-ups), ``"decode"`` the host's time to unpack
-    the int8 codes (paid only when the dense field is read).
+    the int8 codes (paid only when the dense field is read), ``"summary"`` the host's time
+    for :func:`emdflow.summarize` right after each frame's update.
     """
     import pyopencl as cl
 
@@ -175,7 +176,24 @@ def profile_stages(width: int, height: int, *, frames: int = 200, backend_kwargs
     out["gaps"] = statistics.median(gaps)
     out["wall"] = statistics.median(walls)
     out["decode"] = statistics.median(decodes)
+    out["summary"] = _summary_time(width, height, clip, backend_kwargs)
     return out
+
+
+def _summary_time(width: int, height: int, clip, backend_kwargs, frames: int = 120) -> float:
+    """Median ms of :func:`emdflow.summarize` called right after each ``update`` (as the
+    daemon does: the engine has just evicted the summary's tables from the caches)."""
+    from . import FlowEstimator, summarize
+
+    est = FlowEstimator(width, height, backend="opencl", **(backend_kwargs or {}))
+    times = []
+    for i in range(frames):
+        field = est.update(clip[i % len(clip)])
+        if field.ready:
+            t0 = time.perf_counter()
+            summarize(field)
+            times.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(times[5:])
 
 
 def _environment() -> str:

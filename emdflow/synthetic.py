@@ -25,16 +25,20 @@ __all__ = ["TEXTURES", "load_texture", "CameraFlight", "FlightTruth"]
 
 #: Names of bundled photographs usable as ground textures (scikit-image's ``data`` module).
 #: Besides these (and image files), ``"immunohistochemistry"`` (a stained tissue section:
-#: a fine, irregular texture) and synthetic ``"fractal-<beta>-<seed>"`` textures are known.
+#: a fine, irregular texture) and synthetic ``"fractal-<beta>-<seed>[-<sigma>]"`` textures
+#: (:func:`fractal_texture`) are known.
 TEXTURES = ("gravel", "grass", "brick", "camera", "moon", "coffee", "astronaut", "rocket")
 _EXTRA_PHOTOGRAPHS = ("immunohistochemistry",)
 
 
-def fractal_texture(beta: float, seed: int, size: int = 1024) -> np.ndarray:
-    """A random texture with a ``1 / f**beta`` amplitude spectrum (uint8, mean 128, σ 40).
+def fractal_texture(beta: float, seed: int, size: int = 1024, sigma: float = 40.0) -> np.ndarray:
+    """A random texture with a ``1 / f**beta`` amplitude spectrum (uint8, mean 128, standard
+    deviation ``sigma`` gray levels before clipping to 0..255).
 
     Natural ground (gravel, grass, soil) is close to such a spectrum with ``beta`` ≈ 1–1.5;
-    the bundled photographs used for calibration are smoother. Deterministic for a seed."""
+    the bundled photographs used for calibration are smoother. Deterministic for a seed.
+    With ``sigma`` ≈ 60 the frame's mean gradient is that of gravel or grass (~17–19 gray
+    levels), which the summary's calibration needs to see."""
     rng = np.random.default_rng(int(seed))
     fy = np.fft.fftfreq(size)[:, None]
     fx = np.fft.rfftfreq(size)[None, :]
@@ -43,7 +47,7 @@ def fractal_texture(beta: float, seed: int, size: int = 1024) -> np.ndarray:
     spectrum = (rng.normal(size=f.shape) + 1j * rng.normal(size=f.shape)) / f ** float(beta)
     spectrum[0, 0] = 0.0
     image = np.fft.irfft2(spectrum, s=(size, size))
-    image = (image - image.mean()) / image.std() * 40.0 + 128.0
+    image = (image - image.mean()) / image.std() * float(sigma) + 128.0
     return np.clip(image, 0, 255).astype(np.uint8)
 
 
@@ -54,11 +58,14 @@ def _load_texture_cached(name: str) -> np.ndarray:
 
         image = getattr(skimage.data, name)()
     elif name.startswith("fractal-") and not Path(name).is_file():
-        try:
-            _, beta, seed = name.split("-")
-            image = fractal_texture(float(beta), int(seed))
+        try:  # fractal-<beta>-<seed>[-<sigma>]
+            _, beta, seed, *sigma = name.split("-")
+            if len(sigma) > 1:
+                raise ValueError(name)
+            image = fractal_texture(float(beta), int(seed), sigma=float(sigma[0]) if sigma else 40.0)
         except ValueError:
-            raise ValueError(f"texture {name!r}: expected fractal-<beta>-<seed>, e.g. fractal-1.0-1") from None
+            raise ValueError(f"texture {name!r}: expected fractal-<beta>-<seed>[-<sigma>], "
+                             "e.g. fractal-1.0-1 or fractal-0.8-3-60") from None
     else:
         path = Path(name)
         if not path.is_file():

@@ -65,8 +65,8 @@ class EngineConfig:
     model: str = _opt("extended", choices=tuple(MODELS), doc="detector model")
     threshold: float = _opt(5.0, minimum=0.5, maximum=100.0, doc="ternary threshold, gray levels")
     # the extended model's summary reads its evidence per gradient-strength class (more
-    # accurate direction and slow speeds; the summary costs ~0.7-1.0 ms instead of ~0.3 ms per
-    # frame at 640x480 on a 2-core x86): false trades that accuracy for the time on slow boards
+    # accurate speed, direction and slow speeds; the summary costs ~0.8-1.2 ms instead of
+    # ~0.6 ms per frame on a 2-core x86): false trades that accuracy for the time on slow boards
     gradient_classes: bool = _opt(True, doc="summary evidence per gradient-strength class")
 
     def estimator_options(self) -> dict:

@@ -200,7 +200,7 @@ def test_a_gain_step_is_caught_with_brightness_compensation(gain):
 def test_stochastic_calibration_textures():
     """The extended model's calibration also flies over 1/f^beta noise textures and a
     tissue section (ground is rougher than the bundled photographs): deterministic per
-    seed, 8-bit, mean 128 and σ 40; a malformed name says what is expected."""
+    seed, 8-bit, mean 128 and σ 40 (or as named); a malformed name says what is expected."""
     from emdflow.synthetic import fractal_texture, load_texture
 
     a = load_texture("fractal-1.0-1")
@@ -211,5 +211,9 @@ def test_stochastic_calibration_textures():
     rough = np.abs(np.diff(a, axis=1)).mean()
     assert rough > 2 * np.abs(np.diff(load_texture("fractal-1.4-2"), axis=1)).mean()
     assert load_texture("immunohistochemistry").shape == (512, 512)
-    with pytest.raises(ValueError, match="fractal-<beta>-<seed>"):
-        load_texture("fractal-x")
+    # an optional fourth field sets the contrast (σ before clipping): gravel-like gradients
+    b = load_texture("fractal-1.0-1-60")
+    assert abs(b.std() - 60) < 3 and np.corrcoef(a.ravel(), b.ravel())[0, 1] > 0.99
+    for bad in ("fractal-x", "fractal-1.0-1-60-2", "fractal-1.0-1-bright"):
+        with pytest.raises(ValueError, match=r"fractal-<beta>-<seed>\[-<sigma>\]"):
+            load_texture(bad)

@@ -269,7 +269,7 @@ def test_a_table_is_selected_per_channel_set():
     assert calibration_for(EngineParams(scales=(1, 3, 5))) is None
 
 
-@pytest.mark.parametrize("gradient", [2.0, 12.0])  # both scene-contrast classes
+@pytest.mark.parametrize("gradient", [2.0, 8.0, 16.0])  # the three scene-contrast classes
 @pytest.mark.parametrize("flow", [(0.2, 0.12), (-0.45, 0.2), (2.5, -1.4), (-6.0, -7.0)])
 @pytest.mark.parametrize("classes", [True, False], ids=["by-gradient-class", "classes-summed"])
 def test_extended_recovers_flow_from_model_histograms(flow, gradient, classes):

@@ -277,15 +277,16 @@ def test_bench_stages_times_every_command_of_a_frame(capsys):
     from emdflow.opencl_backend import OpenCLEngine
 
     stages = bench.profile_stages(96, 72, frames=30)
-    assert list(stages) == [*OpenCLEngine.STAGES, "gaps", "wall", "decode"]
+    assert list(stages) == [*OpenCLEngine.STAGES, "gaps", "wall", "decode", "summary"]
     kernels = [stages[name] for name in OpenCLEngine.STAGES[1:-1]]
     assert all(ms > 0 for ms in kernels), stages
+    assert stages["summary"] > 0
     assert stages["gaps"] >= 0
     # device time of the commands is part of the host's wall time for the frame
     assert sum(stages[name] for name in OpenCLEngine.STAGES) < stages["wall"]
     assert bench.main(["--stages", "--sizes", "64x48"]) == 0
     line = capsys.readouterr().out.strip().splitlines()[-1]
-    assert line.startswith("64x48") and all(name in line for name in OpenCLEngine.STAGES)
+    assert line.startswith("64x48") and all(name in line for name in (*OpenCLEngine.STAGES, "summary"))
 
 
 def test_bench_model_option_runs_the_daemons_model(monkeypatch, capsys):
