@@ -456,7 +456,7 @@ class _LikelihoodModel:
             logp.append(np.log(p_row)[rows].transpose(0, 3, 1, 2).reshape(n_rows, n_cat, -1))
         # (base row · classes · codes, β node · U): one curve per (row, class, code),
         # base-row-major so a frame's nonzero counts come out sorted by (base row, sign)
-        # (plus a row of zeros at the end: the padding of _row_curves' gather)
+        # (plus a row of zeros at the end: the padding of _weighted_row_sums' numpy path)
         logp = np.stack(logp, axis=1).reshape(n_rows * n_classes * n_cat, -1)
         self.logp = np.concatenate([logp, np.zeros((1, logp.shape[1]))]).astype(np.float32)
         # where each (base row, sign, class, code) count is in hist.ravel()

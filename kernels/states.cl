@@ -134,10 +134,6 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
                     unw = above32_u16(then0, now0, then1, now1, T);
                 }
             }
-            if (!uncompensated) {
-                upw = pw;
-                unw = nw;
-            }
             if (i == 0 || i >= i_edge) {
                 const uint valid = bit_range(r - x, W - 1 - r - x);
                 pw &= valid;
@@ -148,8 +144,12 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
             pos_row[i] = pw;
             neg_row[i] = nw;
             changed += POPCOUNT(pw | nw);
-            step_changed += POPCOUNT(upw | unw);
-            brightening += POPCOUNT(upw);
+            if (c == FINEST_CHANNEL) {
+                /* the exposure-step test's states: without compensation, the channel's own */
+                const uint sp = uncompensated ? upw : pw, sn = uncompensated ? unw : nw;
+                step_changed += POPCOUNT(sp | sn);
+                brightening += POPCOUNT(sp);
+            }
         }
         if (changed) ATOMIC_ADD(stats + STAT_CHANGED + c, changed);
         if (c == FINEST_CHANNEL && step_changed) ATOMIC_ADD(stats + STAT_STEP_CHANGED, step_changed);

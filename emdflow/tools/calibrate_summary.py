@@ -46,23 +46,17 @@ channel, adaptive threshold, brightness compensation) has its own table, ``emdfl
     # gravel or grass at full contrast (the photographs above mostly give g = 1-8, and a
     # table fitted without these read 0.25 px/frame 20-25 % slow over gravel and grass);
     # fractal-<beta>-<seed>-<sigma>: 1/f noise with a standard deviation of sigma
-    python -m emdflow.tools.calibrate_summary collect --model extended --flights 2400 \
-        --frames 8 --seed 43 --contrast-range 0.7,1 --scale-range 1,2 \
-        --textures fractal-0.8-3-60,fractal-1.0-5-55,fractal-1.2-6-60,astronaut \
-        --out /tmp/emdflow_calib_ext5.npz
-    python -m emdflow.tools.calibrate_summary collect --model extended --flights 2400 \
-        --frames 8 --seed 47 --contrast-range 0.7,1 --scale-range 1,2 \
-        --textures fractal-0.9-7-60,fractal-1.1-8-65,fractal-0.7-9-50,coffee \
-        --out /tmp/emdflow_calib_ext6.npz
-    python -m emdflow.tools.calibrate_summary collect --model extended --flights 2400 \
-        --frames 8 --seed 61 --contrast-range 0.7,1 --scale-range 1,2 \
-        --textures fractal-0.85-10-58,fractal-1.05-11-62,fractal-1.3-12-65,immunohistochemistry \
-        --out /tmp/emdflow_calib_ext7.npz
+    ROUGH="python -m emdflow.tools.calibrate_summary collect --model extended --flights 2400 \
+        --frames 8 --scale-range 1,2"
+    $ROUGH --seed 43 --contrast-range 0.7,1 --out /tmp/emdflow_calib_ext5.npz \
+        --textures fractal-0.8-3-60,fractal-1.0-5-55,fractal-1.2-6-60,astronaut
+    $ROUGH --seed 47 --contrast-range 0.7,1 --out /tmp/emdflow_calib_ext6.npz \
+        --textures fractal-0.9-7-60,fractal-1.1-8-65,fractal-0.7-9-50,coffee
+    $ROUGH --seed 61 --contrast-range 0.7,1 --out /tmp/emdflow_calib_ext7.npz \
+        --textures fractal-0.85-10-58,fractal-1.05-11-62,fractal-1.3-12-65,immunohistochemistry
     # ... and the same kind of ground at a quarter to half of that contrast
-    python -m emdflow.tools.calibrate_summary collect --model extended --flights 2400 \
-        --frames 8 --seed 67 --contrast-range 0.2,0.45 --scale-range 1,2 \
-        --textures fractal-0.8-13-60,fractal-1.0-14-55,fractal-1.2-15-60,astronaut \
-        --out /tmp/emdflow_calib_ext8.npz
+    $ROUGH --seed 67 --contrast-range 0.2,0.45 --out /tmp/emdflow_calib_ext8.npz \
+        --textures fractal-0.8-13-60,fractal-1.0-14-55,fractal-1.2-15-60,astronaut
     python -m emdflow.tools.calibrate_summary fit --model extended /tmp/emdflow_calib_ext.npz \
         /tmp/emdflow_calib_ext2.npz /tmp/emdflow_calib_ext3.npz /tmp/emdflow_calib_ext4.npz \
         /tmp/emdflow_calib_ext5.npz /tmp/emdflow_calib_ext6.npz /tmp/emdflow_calib_ext7.npz \
