@@ -337,3 +337,67 @@ def test_extended_contracts():
     static = summarize(_field(np.zeros((2, 18, 64), np.int64), params=EXT_PARAMS, frame_index=20,
                               stats=_stats(EXT_PARAMS, changed=0.0)))
     assert static.static and static.quality > 0 and (static.flow_x, static.flow_y) == (0.0, 0.0)
+
+
+# ---- the misfit term of the quality (deviance from the calibrated model) ----
+def test_both_tables_carry_a_misfit_baseline():
+    from emdflow.tools.calibrate_summary import MISFIT_SPEEDS
+
+    for params in (PARAMS, EXT_PARAMS):
+        z = np.load(calibration_for(params))
+        assert tuple(z["misfit_speeds"]) == MISFIT_SPEEDS
+        base = z["misfit_baseline"]
+        assert base.shape == (len(MISFIT_SPEEDS),) and np.all(np.isfinite(base)) and np.all(base > 0)
+
+
+def test_evidence_the_table_does_not_explain_lowers_the_quality():
+    """Horizontal detectors as for 3 px/frame, vertical ones as for 8: no single flow gives
+    both mixtures. The deviance says so, and the misfit term (not only the curvature)
+    lowers the quality."""
+    consistent = model_histogram((3.0, 2.0), seed=6)
+    mixed = consistent.copy()
+    mixed[1] = model_histogram((3.0, 8.0), seed=6)[1]
+    clean, bad = summarize(_field(consistent)), summarize(_field(mixed))
+    assert bad.deviance > clean.deviance + 0.2
+    assert 0 < bad.quality < clean.quality
+    without = summarize(_field(mixed), options=SummaryOptions(misfit_weight=0.0))
+    assert bad.expected_error > without.expected_error and bad.quality < without.quality
+
+
+@pytest.mark.parametrize("flow", [(3.0, 1.0), (-0.8, 6.0)])
+def test_evidence_drawn_from_the_table_has_no_misfit(flow):
+    """Detections drawn from the calibrated model itself deviate from it less than real
+    calibration flights do: the misfit term leaves their quality alone."""
+    field = _field(model_histogram(flow, seed=8))
+    s = summarize(field)
+    off = summarize(field, options=SummaryOptions(misfit_weight=0.0))
+    assert 0 < s.deviance and s.expected_error == off.expected_error and s.quality == off.quality
+
+
+def test_misfit_baseline_tool(tmp_path):
+    """``calibrate_summary misfit``: the median deviance per speed node of the frames of
+    collected files, written into the table next to its other arrays (left unchanged)."""
+    import shutil
+
+    from emdflow.tools.calibrate_summary import MISFIT_SPEEDS, misfit_baseline, write_misfit
+
+    flows = [(0.8, 0.6), (2.4, -1.8), (-4.8, 6.4)] * 12  # 1, 3 and 8 px/frame: nodes
+    hist = np.stack([model_histogram(f, seed=i) for i, f in enumerate(flows)])
+    stats = np.stack([_stats()] * len(flows))
+    data = tmp_path / "flights.npz"
+    np.savez(data, hist=hist, stats=stats, flow=np.array(flows), model=np.array("paper"))
+    base, counts = misfit_baseline([data], "paper", frames=len(flows), min_frames=5)
+    assert counts.sum() == len(flows)
+    assert np.all(np.isfinite(base))
+    # every frame is counted at the node nearest (in log speed) to its estimate
+    nodes = np.log(MISFIT_SPEEDS)
+    for f in set(flows):
+        assert counts[np.argmin(np.abs(nodes - math.log(math.hypot(*f))))] >= 12
+    table = tmp_path / "table.npz"
+    shutil.copy(CALIBRATION_FILE, table)
+    write_misfit([data], "paper", table, frames=len(flows), min_frames=5)
+    z, original = np.load(table), np.load(CALIBRATION_FILE)
+    np.testing.assert_array_equal(z["misfit_baseline"], base)
+    for key in original.files:
+        if key not in ("misfit_speeds", "misfit_baseline"):
+            np.testing.assert_array_equal(z[key], original[key])

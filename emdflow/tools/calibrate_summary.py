@@ -17,11 +17,15 @@ Steps (all deterministic; the committed table is exactly what these commands wri
         --out /tmp/emdflow_calib.npz
     python -m emdflow.tools.calibrate_summary collect --flights 6000 --seed 7 \
         --out /tmp/emdflow_calib2.npz
-    # 2. measure the table and write emdflow/summary_calibration.npz
+    # 2. measure the table and write emdflow/summary_calibration.npz; then, with the
+    #    new table, the median deviance of 4000 of these frames per speed (the
+    #    baseline of the summary's misfit term, stored in the same file; `misfit`
+    #    instead of `fit` measures only that, for a table already written)
     python -m emdflow.tools.calibrate_summary fit /tmp/emdflow_calib.npz \
         /tmp/emdflow_calib2.npz --write
     # 3. evaluate summarize() on the EVALUATION textures (per-speed table, coverage,
-    #    quality bands, time per call); 1728 frames per set, ~20 s each
+    #    quality bands and how well quality ranks the frames by error, time per call);
+    #    1728 frames per set, ~20 s each
     python -m emdflow.tools.calibrate_summary evaluate --offset 0
     python -m emdflow.tools.calibrate_summary evaluate --offset 0.3
     python -m emdflow.tools.calibrate_summary evaluate --random
@@ -430,6 +434,84 @@ def fit_main(data, write, model="paper"):
             speeds=np.array(params.speeds, np.float64), **extra,
         )
         print(f"wrote {out}")
+        write_misfit(data, model, out)
+
+#: Speeds (px/frame) at which a table stores the calibration flights' median
+#: :attr:`FlowSummary.deviance` (the baseline of the summary's misfit term), from this
+#: many frames drawn (seeded) from the calibration files.
+MISFIT_SPEEDS = (0.2, 0.35, 0.6, 1.0, 1.7, 3.0, 5.0, 8.0, 13.0, 20.0)
+MISFIT_FRAMES = 4000
+MISFIT_SEED = 20241122
+
+
+def misfit_baseline(data, model: str, frames: int = MISFIT_FRAMES, seed: int = MISFIT_SEED,
+                    min_frames: int = 30):
+    """Median :attr:`FlowSummary.deviance` of calibration frames per node of
+    :data:`MISFIT_SPEEDS`, by the summary's own speed (frames whose estimate falls between
+    the midpoints, in log speed, around the node; a node with fewer than ``min_frames``
+    frames is interpolated from its neighbours). The summary must already read ``model``'s table.
+    Returns ``(median per node, frames per node)``."""
+    from emdflow import summarize
+    from emdflow.field import FlowField
+    from emdflow.reference import STAT_FIRST_CHANGED
+
+    params = model_params(model)
+    sizes = []
+    for path in data:
+        with np.load(path) as d:
+            sizes.append(len(d["flow"]))
+    pick = np.sort(np.random.default_rng(seed).choice(sum(sizes), min(frames, sum(sizes)), replace=False))
+    codes = np.zeros((240, 320), np.int8)  # collect renders 320x240
+    deviance, speed = [], []
+    start = 0
+    for path, size in zip(data, sizes):
+        rows = pick[(pick >= start) & (pick < start + size)] - start
+        start += size
+        with np.load(path) as d:
+            hist, stats = d["hist"][rows], d["stats"][rows]
+        if stats.shape[1] != STAT_FIRST_CHANGED + len(params.channels):
+            raise SystemExit(f"{path}: {stats.shape[1]} statistics per frame, the engine now makes "
+                             f"{STAT_FIRST_CHANGED + len(params.channels)}: collect it again")
+        for hi, st in zip(hist, stats):
+            s = summarize(FlowField(codes, codes, st, hi, params, params.history_frames + 1))
+            if s.quality > 0 and not s.static:
+                deviance.append(s.deviance)
+                speed.append(s.speed)
+    nodes = np.log(np.asarray(MISFIT_SPEEDS))
+    edges = np.concatenate([[-np.inf], (nodes[1:] + nodes[:-1]) / 2, [np.inf]])
+    which = np.searchsorted(edges, np.log(np.maximum(speed, 1e-3)), side="right") - 1
+    deviance = np.asarray(deviance)
+    counts = np.bincount(which, minlength=nodes.size)
+    median = np.array([np.median(deviance[which == i]) if counts[i] >= min_frames else np.nan
+                       for i in range(nodes.size)])
+    filled = np.isfinite(median)
+    if not filled.any():
+        raise SystemExit("misfit baseline: no calibration frame gave a likelihood fit")
+    return np.interp(nodes, nodes[filled], median[filled]), counts
+
+
+def write_misfit(data, model: str, path: Path | None = None, **baseline_options) -> Path:
+    """Add the misfit baseline (:func:`misfit_baseline` of ``data``) to ``model``'s table
+    (``path``: another copy of it)."""
+    import emdflow.summary as summary
+
+    path = calibration_path(model) if path is None else Path(path)
+    with np.load(path) as z:
+        table = {k: z[k] for k in z.files if k not in ("misfit_speeds", "misfit_baseline")}
+    # the summary reads the tables as they are on disk now (the deviance does not depend
+    # on an old baseline: it is measured at the answer, which the misfit term leaves alone)
+    summary._CALIBRATION.clear()
+    summary._MODEL_CACHE.clear()
+    baseline, counts = misfit_baseline(data, model, **baseline_options)
+    print("misfit baseline (median deviance per detection) at", " ".join(
+        f"{v:g}: {b:.3f} ({n})" for v, b, n in zip(MISFIT_SPEEDS, baseline, counts)))
+    np.savez_compressed(path, **table, misfit_speeds=np.asarray(MISFIT_SPEEDS, np.float64),
+                        misfit_baseline=baseline.astype(np.float64))
+    summary._CALIBRATION.clear()
+    summary._MODEL_CACHE.clear()
+    print(f"wrote the misfit baseline into {path}")
+    return path
+
 
 EVALUATION_TEXTURES = ("gravel", "brick", "grass", "camera")
 EVALUATION_SPEEDS = (1, 2, 3, 4, 5, 7, 9, 11, 13)
@@ -536,6 +618,13 @@ def score(data, options=None, out=print):
         if m.any():
             out(f"    {lo:3d}-{hi - 1:3d}   | {int(m.sum()):6d} | {np.median(err[m, 0]) * 100:5.1f} % "
                 f"| {np.percentile(err[m, 0], 90) * 100:5.1f} %")
+    rated = qual > 0
+    if rated.sum() > 2:
+        from scipy.stats import spearmanr
+
+        # how well quality ranks the frames by error: 1 = perfectly, 0 = not at all
+        out(f"  rank correlation of quality with -error (Spearman, quality > 0): "
+            f"{spearmanr(qual[rated], -err[rated, 0])[0]:.2f}")
     return err, qual
 
 
@@ -585,6 +674,9 @@ def main(argv=None):
                    help="write emdflow/summary_calibration.npz (paper) or "
                         "emdflow/summary_calibration_<model>.npz")
     f.add_argument("--model", default="paper", choices=tuple(MODELS))
+    m = sub.add_parser("misfit", help="(re)measure only the misfit baseline of a written table")
+    m.add_argument("data", nargs="+")
+    m.add_argument("--model", default="paper", choices=tuple(MODELS))
     e = sub.add_parser("evaluate")
     e.add_argument("--offset", type=float, default=0.3, help="direction offset, radians")
     e.add_argument("--random", action="store_true",
@@ -611,6 +703,8 @@ def main(argv=None):
                                 if a.contrast_range else None))
     elif a.cmd == "fit":
         fit_main(a.data, a.write, a.model)
+    elif a.cmd == "misfit":
+        write_misfit(a.data, a.model)
     else:
         options = None
         if a.ioc:
