@@ -289,6 +289,36 @@ def test_bench_stages_times_every_command_of_a_frame(capsys):
     assert line.startswith("64x48") and all(name in line for name in (*OpenCLEngine.STAGES, "summary"))
 
 
+def test_bench_ratios_of_medians_and_per_round(monkeypatch):
+    """The table's two DIS / OpenCL ratios: of the medians, and the median of each round's
+    own ratio. A clock where DIS takes 3x the engine's time, and from the middle of the
+    third round (after its engine block) everything takes twice as long: the ratio of the
+    medians compares a fast engine with a slow DIS (6x), each round's ratio is 3x but one."""
+    from emdflow import bench
+
+    state = {"t": 0.0, "round": 0}
+    order = ["opencl", "opencl+summary", "numpy", "dis", "blur"]
+
+    def methods(width, height, frames, backend_kwargs=None):
+        def make(name):
+            def run(i):
+                loaded = state["round"] >= (2 if name == "dis" else 3)
+                state["t"] += (3.0 if name == "dis" else 1.0) * (2.0 if loaded else 1.0) * 1e-3
+            return run
+        return {name: make(name) for name in order}
+
+    monkeypatch.setattr(bench, "_methods", methods)
+    monkeypatch.setattr(bench, "_frames", lambda w, h, n: [None] * n)
+    monkeypatch.setattr(bench.time, "perf_counter", lambda: state["t"])
+    results = bench.run_benchmark(sizes=((64, 48),), block=4, rounds=5,
+                                  progress=lambda m: state.update(round=state["round"] + 1))
+    r = results[(64, 48)]
+    assert r["dis"] / r["opencl"] == pytest.approx(6.0)  # engine 1, 1, 1, 2, 2; DIS 3, 3, 6, 6, 6
+    assert r["dis_per_opencl_paired"] == pytest.approx(3.0)  # 3, 3, 6, 3, 3
+    table = bench.format_table(results)
+    assert "| per round |" in table and "| 6.00x | 3.00x |" in table
+
+
 def test_bench_model_option_runs_the_daemons_model(monkeypatch, capsys):
     """``--model extended`` benchmarks the daemon's default model (delays and adaptive
     threshold from ``emdflow.params.MODELS``); ``--delays`` overrides the delays alone."""
