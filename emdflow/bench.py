@@ -38,10 +38,13 @@ __all__ = ["main", "profile_stages", "run_benchmark"]
 SIZES = ((320, 240), (640, 480))
 
 
-def _frames(width: int, height: int, count: int) -> list[np.ndarray]:
+def _frames(width: int, height: int, count: int, drift: float = 0.0) -> list[np.ndarray]:
+    """A camera flight over gravel; with ``drift`` an exposure ramp of that relative size
+    across the clip (every frame then has a gain for the brightness compensation)."""
     from .synthetic import CameraFlight
 
-    flight = CameraFlight("gravel", width=width, height=height, flow=(2.3, -1.6), supersample=2, seed=1)
+    flight = CameraFlight("gravel", width=width, height=height, flow=(2.3, -1.6), supersample=2, seed=1,
+                          exposure_drift=drift, drift_frames=count)
     return [flight.render(t) for t in range(count)]
 
 
@@ -139,7 +142,8 @@ def write_plot(results: dict, path: str) -> None:
     plt.close(fig)
 
 
-def profile_stages(width: int, height: int, *, frames: int = 200, backend_kwargs=None) -> dict:
+def profile_stages(width: int, height: int, *, frames: int = 200, backend_kwargs=None,
+                   drift: float = 0.0) -> dict:
     """Device time of each command of a frame (OpenCL profiling events), median ms.
 
     The engine runs on a profiling queue over a camera flight; ``"wall"`` is the host's
@@ -154,7 +158,7 @@ def profile_stages(width: int, height: int, *, frames: int = 200, backend_kwargs
     from .opencl_backend import OpenCLEngine
     from .params import EngineParams
 
-    clip = _frames(width, height, 40)
+    clip = _frames(width, height, 40, drift)
     engine = OpenCLEngine(width, height, EngineParams(**(backend_kwargs or {})))
     engine.queue = cl.CommandQueue(engine.ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
     for i in range(10):
@@ -234,6 +238,9 @@ def main(argv=None) -> int:
                         help="temporal delays of the engine instead, e.g. 1,2,4 (fixed threshold)")
     parser.add_argument("--stages", action="store_true",
                         help="instead: device time per command of a frame (OpenCL profiling events)")
+    parser.add_argument("--drift", type=float, default=0.0,
+                        help="with --stages: an exposure drift of this relative size across the "
+                             "40-frame clip (the brightness compensation's slower path)")
     args = parser.parse_args(argv)
     try:
         sizes = [tuple(int(v) for v in s.lower().split("x")) for s in args.sizes.split(",")]
@@ -246,7 +253,7 @@ def main(argv=None) -> int:
           + (f", delays {kwargs['delays']}" if args.delays is not None else ""), flush=True)
     if args.stages:
         for width, height in sizes:
-            stages = profile_stages(width, height, backend_kwargs=kwargs)
+            stages = profile_stages(width, height, backend_kwargs=kwargs, drift=args.drift)
             cells = " | ".join(f"{name} {ms:.3f}" for name, ms in stages.items())
             print(f"{width}x{height} (median ms per frame): {cells}")
         return 0

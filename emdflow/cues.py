@@ -37,8 +37,8 @@ and vertical ones by ``y`` into 16 bins), so they cost the same at any frame siz
 
   Measured with ``python -m emdflow.tools.zoom_eval`` (320×240, noise σ = 2, six
   photographs × rates 0.002–0.02 per frame, 8 frames × 6 flights per cell; the README has
-  the tables): median relative error 12 % for the extended model on pure zooms (the
-  former line fit 35 %), 20.6 % (56.5 %) with a 2.2 px/frame translation; the paper's model
+  the tables): median relative error 11.8 % for the extended model on pure zooms (the
+  former line fit 34 %), 20.3 % (54.7 %) with a 2.2 px/frame translation; the paper's model
   39 % (96 %) and 27 % (50 %) — it sees nothing below ~0.5 px/frame, so a zoom of
   0.2 %/frame (0.3 px/frame at the frame's edge) gives no cue and 0.5 %/frame reads
   0.5–0.75×. Periodic textures (brick) alias on one axis and read 0.4–0.7×. A channel

@@ -60,10 +60,10 @@ class FlowEstimator:
     adaptive_gain, threshold_min, threshold_max : float, optional
         Gain and limits of the adaptive threshold, gray levels.
     brightness_compensation : bool, optional
-        Luminance adaptation (default False, the paper): each channel's receptor change
-        is reduced by the frame's mean brightness change over the channel's delay, so an
-        exposure drift does not favour one polarity of the states (see
-        :class:`emdflow.EngineParams`).
+        Luminance adaptation (default False, the paper): each channel compares its
+        receptors with their values ``D`` frames back scaled by the exposure gain over
+        those frames (the ratio of the frames' brightness), so an exposure drift does not
+        favour one polarity of the states (see :class:`emdflow.EngineParams`).
     gradient_classes : bool, optional
         Bin the summary's evidence also by gradient strength (default False; the extended
         model's summary table needs it, see :class:`emdflow.EngineParams`).

@@ -196,6 +196,7 @@ class _Layout:
             "SSTRIDE": self.SSTRIDE, "SPAD": self.SPAD, "SAT_SLOTS": self.SAT_SLOTS, "DSAT": self.DSAT,
             "NCH": len(chans),
             "COMPENSATE": int(params.brightness_compensation), "NSTRIPS": self.NSTRIPS,
+            "BRIGHTNESS_RATIO_MAX_Q": EngineParams.BRIGHTNESS_RATIO_MAX_Q,
             "CH_K": join(k for k, _ in chans), "CH_D": join(d for _, d in chans),
             "CH_RING": join(self.rings), "CH_BASE": join(self.bases),
             "RADIUS": len(w) // 2, "WEIGHTS": join(w),

@@ -97,12 +97,6 @@ def gaussian_weights(size: int, total: int = 256) -> tuple[int, ...]:
     return tuple(int(v) for v in w)
 
 
-def _trunc_div(a: int, b: int) -> int:
-    """Integer division truncated towards zero, like C's ``/`` (Python's ``//`` floors)."""
-    q = abs(a) // abs(b)
-    return q if (a >= 0) == (b > 0) else -q
-
-
 @dataclasses.dataclass(frozen=True)
 class EngineParams:
     """Parameters of the Elementary Velocity Detector (see ``spec/template-model.md``).
@@ -138,14 +132,15 @@ class EngineParams:
         contrast drop down to 1.5 (≈ 3σ of the prefiltered frame-difference noise for
         sensor noise σ = 2).
     brightness_compensation : bool
-        Luminance adaptation (off in the paper's model): before thresholding, each
-        channel's receptor change ``R(t) − R(t−D)`` is reduced by the change of the whole
-        prefiltered frame's mean brightness over the same ``D`` frames
-        (:meth:`brightness_offset`). An exposure drift then no longer lowers the threshold
-        of one polarity and raises the other's: at a drift of 20 % over a flight, the slow
-        channels' changes of 1–2 px of motion and the drift are of the same size. What is
-        left of a gain step (the change is proportional to brightness, the offset is its
-        mean) is caught by the exposure-step test, which counts the uncompensated states.
+        Luminance adaptation (off in the paper's model): an exposure change is a gain, so
+        before thresholding each channel compares ``256 · R(t)`` with ``ρ · R(t−D)``, ``ρ``
+        the ratio of the whole prefiltered frames' brightness over the same ``D`` frames
+        ×256 (:meth:`brightness_ratio_q`; threshold ``256 · T``; exact integers). An
+        exposure drift then no longer lowers the threshold of one polarity and raises the
+        other's, bright parts of the scene no more than dark ones: at a drift of 20 % over
+        a flight, the slow channels' changes of 1–2 px of motion and the drift are of the
+        same size. A gain step is compensated the same way; the exposure-step test counts
+        the uncompensated states and catches it.
     gradient_classes : bool
         Also bin the summary's evidence by the gradient strength of each detection
         against the threshold (``GRADIENT_CLASS_STEPS``; the histogram then has
@@ -240,18 +235,21 @@ class EngineParams:
         q = self.threshold_q(self.threshold) if theta_q is None else int(theta_q)
         return (q * k * k) >> 8
 
-    def brightness_offset(self, k: int, brightness_change: int, pixels: int) -> int:
-        """Offset subtracted from a k×k box-sum change before thresholding (box units).
+    #: Largest brightness ratio of :meth:`brightness_ratio_q` (×256): 16× brighter. Keeps
+    #: ``ratio · R`` of the largest box sums (15 × 15 × 255) within 32-bit integers.
+    BRIGHTNESS_RATIO_MAX_Q = 4096
 
-        ``brightness_change`` is the change of the prefiltered frame's pixel sum over the
-        channel's delay (``pixels`` pixels). The mean change per pixel, in 1/256 gray
-        levels, times ``k²``, both divisions truncated towards zero (C's ``/``, which the
-        kernel uses). 0 unless ``brightness_compensation``.
+    def brightness_ratio_q(self, brightness_now: int, brightness_then: int) -> int:
+        """Gain of the exposure between two frames, ×256, rounded: ``round(256 · B_now /
+        B_then)`` for the prefiltered frames' pixel sums ``B`` (0 … ``BRIGHTNESS_RATIO_MAX_Q``;
+        256 when ``B_then`` is 0 or ``brightness_compensation`` is off). 256 means no
+        compensation: a ratio within ±0.2 % of 1 (motion alone changes a frame's mean by
+        less, mostly) leaves the states exactly as without it.
         """
-        if not self.brightness_compensation:
-            return 0
-        per_pixel_q = _trunc_div(int(brightness_change) * 256, int(pixels))
-        return _trunc_div(per_pixel_q * k * k, 256)
+        now, then = int(brightness_now), int(brightness_then)
+        if not self.brightness_compensation or then <= 0:
+            return 256
+        return min((512 * now + then) // (2 * then), self.BRIGHTNESS_RATIO_MAX_Q)
 
     def texture_threshold_for(self, theta_q: int) -> int:
         """Threshold on ``|ΔxP| + |ΔyP|`` for a textured pixel: ``floor(2θ)``."""

@@ -136,15 +136,12 @@ def receptor_change(p_now: np.ndarray, p_before: np.ndarray, k: int) -> np.ndarr
     return box_sums(p_now.astype(np.int64) - p_before, k)
 
 
-def _outside_receptors(shape: tuple[int, int], k: int) -> np.ndarray:
-    """Pixels whose ``k × k`` block does not lie wholly inside the frame (where
-    :func:`box_sums` gives 0): a boolean mask."""
-    H, W = shape
-    r = k // 2
-    outside = np.ones((H, W), bool)
-    if H >= k and W >= k:
-        outside[r : H - r, r : W - r] = False
-    return outside
+def gain_compensated_change(p_now: np.ndarray, p_before: np.ndarray, k: int, ratio_q: int) -> np.ndarray:
+    """``256 · R_k(t) − ratio_q · R_k(t−D)``: the receptor change with the exposure gain
+    ``ratio_q / 256`` between the two frames taken out (brightness compensation), as box
+    sums of ``256 · P(t) − ratio_q · P(t−D)`` (exact integers; 0 where there is no receptor).
+    """
+    return box_sums(p_now.astype(np.int64) * 256 - p_before.astype(np.int64) * int(ratio_q), k)
 
 
 def ternary_states(change: np.ndarray, box_threshold: int) -> np.ndarray:
@@ -416,12 +413,14 @@ class ReferenceEngine:
         receptors_mid = {}
         for c, (k, d) in enumerate(prm.channels):
             if len(self._p_history) > d:
-                change = receptor_change(p_now, self._p_history[-1 - d], k)
+                p_then = self._p_history[-1 - d]
+                change = receptor_change(p_now, p_then, k)
                 T = prm.box_threshold(k, self.theta_q)
-                offset = prm.brightness_offset(k, self._brightness[-1] - self._brightness[-1 - d], p_now.size)
-                s_now = ternary_states(change - offset, T)
-                if offset:
-                    s_now[_outside_receptors(s_now.shape, k)] = 0  # no receptor: change 0 there
+                ratio_q = prm.brightness_ratio_q(self._brightness[-1], self._brightness[-1 - d])
+                if ratio_q == 256:
+                    s_now = ternary_states(change, T)
+                else:  # exposure gain: 256 R(t) against ratio_q R(t - D), threshold 256 T
+                    s_now = ternary_states(gain_compensated_change(p_now, p_then, k, ratio_q), 256 * T)
                     if (k, d) == (prm.scales[0], 1):  # the exposure-step test's states
                         step_states = ternary_states(change, T)
             else:

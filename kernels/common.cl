@@ -12,6 +12,7 @@
  *                   difference table S_t - S_(t-1) that ternary_states reads for them
  *   NCH             channels (scale, delay), sorted by increasing speed
  *   COMPENSATE      1 for brightness compensation (EngineParams.brightness_compensation)
+ *   BRIGHTNESS_RATIO_MAX_Q  largest exposure gain x256 it compensates (EngineParams)
  *   NSTRIPS         16-column strips of the prefilter (ceil(W / 16))
  *   CH_K, CH_D, CH_RING, CH_BASE   per-channel scale, delay, state ring length (2D + 1)
  *                   and first plane slot (the threshold theta_q = round(256 theta) is a

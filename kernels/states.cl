@@ -10,10 +10,11 @@
  *   of prefiltered frames (the slow channels of the extended model), compared byte-wise
  *   with saturating subtractions, 32 pixels at a time (exceeds32 in common.cl);
  * stored as two bit planes (positive, negative) in the channel's ring slot. With
- * COMPENSATE the two polarities have thresholds T + off and T - off (brightness
- * compensation: off follows the frame's mean brightness change over D frames; either
- * threshold may then be negative, which the byte and 16-bit compares turn into the
- * complement of the opposite compare).
+ * COMPENSATE (brightness compensation) and an exposure gain rho = rq / 256 between the
+ * two frames (rq = round(256 B_t / B_(t-D)) of the frames' pixel sums, see
+ * EngineParams.brightness_ratio_q), a channel compares 256 now - rq then with +-256 T in
+ * 32-bit lanes instead (box sums from the tables for every k > 1: the difference table
+ * holds now - then only); rq = 256, the usual case, takes the paths above unchanged.
  * Also counts nonzero states per channel, textured pixels and saturated pixels. */
 
 inline ushort16 box16(__global const ushort *S, int y, int x, int r)
@@ -25,28 +26,37 @@ inline ushort16 box16(__global const ushort *S, int y, int x, int r)
     return LOAD_US16(bot + w) - LOAD_US16(top + w) - LOAD_US16(bot) + LOAD_US16(top);
 }
 
-/* bits of now - then > T for 32 pixels of P (any sign of T: with brightness compensation
- * a threshold T -+ offset can be negative) */
-inline uint above32_bytes(__global const uchar *now, __global const uchar *then, int T)
+/* bits of 256 now - rq then > T256 (p) and < -T256 (n) for 16 lanes (box sums below
+ * 2^16 and rq <= BRIGHTNESS_RATIO_MAX_Q = 4096: every product fits in 32 bits) */
+inline void gain16(int8 now_lo, int8 now_hi, int8 then_lo, int8 then_hi, int rq, int T256,
+                   uint *p, uint *n)
 {
-    if (T >= 0) return exceeds32(now, then, (uchar)(T > 255 ? 255 : T));
-    /* now - then > T  <=>  not (then - now > -T - 1) */
-    return ~exceeds32(then, now, (uchar)(-T - 1 > 255 ? 255 : -T - 1));
+    const int8 g_lo = (now_lo << 8) - rq * then_lo, g_hi = (now_hi << 8) - rq * then_hi;
+    *p = pack16((short16)(convert_short8(g_lo > T256), convert_short8(g_hi > T256)));
+    *n = pack16((short16)(convert_short8(g_lo < -T256), convert_short8(g_hi < -T256)));
 }
 
-/* the same for two 16-lane halves of 16-bit box sums */
+/* gain16 for 32 pixels from two 16-lane halves */
+inline void gain32(ushort16 now0, ushort16 then0, ushort16 now1, ushort16 then1, int rq, int T256,
+                   uint *pw, uint *nw)
+{
+    uint p0, n0, p1, n1;
+    gain16(convert_int8(now0.lo), convert_int8(now0.hi), convert_int8(then0.lo), convert_int8(then0.hi),
+           rq, T256, &p0, &n0);
+    gain16(convert_int8(now1.lo), convert_int8(now1.hi), convert_int8(then1.lo), convert_int8(then1.hi),
+           rq, T256, &p1, &n1);
+    *pw = p0 | (p1 << 16);
+    *nw = n0 | (n1 << 16);
+}
+
+/* bits of now - then > T for two 16-lane halves of 16-bit box sums (T >= 0):
+ * sat(sat(now - T) - then) != 0 */
 inline uint above32_u16(ushort16 now0, ushort16 then0, ushort16 now1, ushort16 then1, int T)
 {
     const short16 z = (short16)(0);
-    if (T >= 0) {
-        /* now - then > T  <=>  sat(sat(now - T) - then) != 0 */
-        const ushort16 Tv = (ushort16)((ushort)(T > 65535 ? 65535 : T));
-        return ~pack32(as_short16(subs_u16(subs_u16(now0, Tv), then0)) == z,
-                       as_short16(subs_u16(subs_u16(now1, Tv), then1)) == z);
-    }
-    const ushort16 Tv = (ushort16)((ushort)(-T - 1 > 65535 ? 65535 : -T - 1));
-    return pack32(as_short16(subs_u16(subs_u16(then0, Tv), now0)) == z,
-                  as_short16(subs_u16(subs_u16(then1, Tv), now1)) == z);
+    const ushort16 Tv = (ushort16)((ushort)(T > 65535 ? 65535 : T));
+    return ~pack32(as_short16(subs_u16(subs_u16(now0, Tv), then0)) == z,
+                   as_short16(subs_u16(subs_u16(now1, Tv), then1)) == z);
 }
 
 __kernel void ternary_states(__global const ushort *sat, __global const ushort *dsat, __global uint *planes,
@@ -74,41 +84,47 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
         /* (S_then only for k > 1: the tables go back as far as those channels' delays) */
         __global const ushort *S_then = sat + pos_mod(t - D, SAT_SLOTS) * SAT_SIZE;
         __global const uchar *P_then = P + pos_mod(t - D, P_SLOTS) * P_SIZE;
-        /* state +1 if now - then > Tp, -1 if then - now > Tn: Tp = Tn = T, or with
-         * brightness compensation T + off and T - off (either may be negative), off = the
-         * mean brightness change over D frames in k^2 box units, truncated like
-         * EngineParams.brightness_offset */
-        int Tp = T, Tn = T;
+        /* brightness compensation: the exposure gain over D frames, x256, rounded, as
+         * EngineParams.brightness_ratio_q (pixel sums < 2^32, their products in 64 bits) */
+        int rq = 256;
 #if COMPENSATE
         {
-            const long change = (long)bright[t % P_SLOTS] - (long)bright[pos_mod(t - D, P_SLOTS)];
-            const long per_pixel_q = change * 256 / ((long)W * H);
-            const int off = (int)(per_pixel_q * (k * k) / 256);
-            Tp = T + off;
-            Tn = T - off;
+            const long now_sum = (long)bright[t % P_SLOTS], then_sum = (long)bright[pos_mod(t - D, P_SLOTS)];
+            if (then_sum > 0) {
+                const long q = (512 * now_sum + then_sum) / (2 * then_sum);
+                rq = (int)(q < BRIGHTNESS_RATIO_MAX_Q ? q : BRIGHTNESS_RATIO_MAX_Q);
+            }
         }
 #endif
+        const int T256 = 256 * T;
         /* words from i_edge on hold pixels past W - 1 - r; word 0 holds x < r */
         const int i_edge = (W - r) / 32;
-        /* the exposure-step test counts the finest one-frame channel's states without the
-         * compensation (a step's mean would be taken out of them) */
-        const int uncompensated = COMPENSATE && c == FINEST_CHANNEL;
         int changed = 0, step_changed = 0, brightening = 0;
         for (int i = 0; i < NW; i++) {
             const int x = i * 32;
-            uint pw, nw, upw = 0, unw = 0;
+            uint pw, nw, upw, unw;  /* states; u..: without compensation (exposure-step test) */
             if (k == 1) {
                 /* a 1x1 receptor is the prefiltered pixel itself: P_t - P_(t-D), byte-wise */
                 __global const uchar *pn = P_now + y * PSTRIDE + PPAD + x, *pt = P_then + y * PSTRIDE + PPAD + x;
-                pw = above32_bytes(pn, pt, Tp);
-                nw = above32_bytes(pt, pn, Tn);
-                if (uncompensated) {
-                    upw = above32_bytes(pn, pt, T);
-                    unw = above32_bytes(pt, pn, T);
+                const uchar Tb = (uchar)(T > 255 ? 255 : T);
+                upw = exceeds32(pn, pt, Tb);
+                unw = exceeds32(pt, pn, Tb);
+                if (rq == 256) {
+                    pw = upw;
+                    nw = unw;
+                } else {
+                    gain32(convert_ushort16(LOAD_UC16(pn)), convert_ushort16(LOAD_UC16(pt)),
+                           convert_ushort16(LOAD_UC16(pn + 16)), convert_ushort16(LOAD_UC16(pt + 16)),
+                           rq, T256, &pw, &nw);
                 }
+            } else if (rq != 256) {
+                gain32(box16(S_now, y, x, r), box16(S_then, y, x, r), box16(S_now, y, x + 16, r),
+                       box16(S_then, y, x + 16, r), rq, T256, &pw, &nw);
+                upw = pw;  /* (the exposure-step test reads the finest channel only) */
+                unw = nw;
             } else if (k <= 11) {
                 /* |now - then| <= 121 * 255 < 2^15: the int16 difference is exact */
-                const short Tps = (short)CLAMPI(Tp, -32767, 32767), Tns = (short)CLAMPI(Tn, -32767, 32767);
+                const short Ts = (short)CLAMPI(T, 0, 32767);
                 short16 d0, d1;
                 if (D == 1) {
                     d0 = as_short16(box16(dsat, y, x, r));
@@ -117,22 +133,13 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
                     d0 = as_short16(box16(S_now, y, x, r) - box16(S_then, y, x, r));
                     d1 = as_short16(box16(S_now, y, x + 16, r) - box16(S_then, y, x + 16, r));
                 }
-                pw = pack32(d0 > Tps, d1 > Tps);
-                nw = pack32(d0 < (short)-Tns, d1 < (short)-Tns);
-                if (uncompensated) {
-                    const short Ts = (short)CLAMPI(T, 0, 32767);
-                    upw = pack32(d0 > Ts, d1 > Ts);
-                    unw = pack32(d0 < (short)-Ts, d1 < (short)-Ts);
-                }
+                pw = upw = pack32(d0 > Ts, d1 > Ts);
+                nw = unw = pack32(d0 < (short)-Ts, d1 < (short)-Ts);
             } else {
                 const ushort16 now0 = box16(S_now, y, x, r), then0 = box16(S_then, y, x, r);
                 const ushort16 now1 = box16(S_now, y, x + 16, r), then1 = box16(S_then, y, x + 16, r);
-                pw = above32_u16(now0, then0, now1, then1, Tp);
-                nw = above32_u16(then0, now0, then1, now1, Tn);
-                if (uncompensated) {
-                    upw = above32_u16(now0, then0, now1, then1, T);
-                    unw = above32_u16(then0, now0, then1, now1, T);
-                }
+                pw = upw = above32_u16(now0, then0, now1, then1, T);
+                nw = unw = above32_u16(then0, now0, then1, now1, T);
             }
             if (i == 0 || i >= i_edge) {
                 const uint valid = bit_range(r - x, W - 1 - r - x);
@@ -145,10 +152,9 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
             neg_row[i] = nw;
             changed += POPCOUNT(pw | nw);
             if (c == FINEST_CHANNEL) {
-                /* the exposure-step test's states: without compensation, the channel's own */
-                const uint sp = uncompensated ? upw : pw, sn = uncompensated ? unw : nw;
-                step_changed += POPCOUNT(sp | sn);
-                brightening += POPCOUNT(sp);
+                /* the exposure-step test's states: those without compensation */
+                step_changed += POPCOUNT(upw | unw);
+                brightening += POPCOUNT(upw);
             }
         }
         if (changed) ATOMIC_ADD(stats + STAT_CHANGED + c, changed);

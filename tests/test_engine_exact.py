@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from emdflow.params import MODELS, EngineParams
-from emdflow.reference import ReferenceEngine
+from emdflow.reference import ReferenceEngine, prefilter
 from emdflow.synthetic import CameraFlight
 
 opencl_backend = pytest.importorskip("emdflow.opencl_backend")
@@ -117,20 +117,24 @@ def test_parameter_variants(params):
 @pytest.mark.parametrize("portable", [False, True], ids=["x86", "portable"])
 @pytest.mark.parametrize("size", [(89, 67), (75, 301)])
 def test_brightness_compensation_is_exact(monkeypatch, size, portable):
-    """An exposure drift, a small step (compensated) and a large one (clamped to ±θ):
-    the same states and output. 301 rows: the prefilter's strip sums cross its 256-row
-    flush of the wrapping column sums."""
+    """An exposure drift, a small step and a large one, every channel with and without an
+    exposure gain to compensate: the same states and output. 301 rows: the prefilter's
+    strip sums cross its 256-row flush of the wrapping column sums."""
     if portable:
         monkeypatch.setenv(opencl_backend.PORTABLE_ENV, "1")
     width, height = size
     params = EngineParams(**MODELS["extended"])
     assert params.brightness_compensation
-    flight = CameraFlight("gravel", width=width, height=height, flow=(0.4, -0.3), noise_sigma=2,
-                          exposure_drift=-0.35, drift_frames=20, seed=8)
+    flight = CameraFlight("gravel", width=width, height=height, flow=(0.4, -0.3), noise_sigma=2, seed=8)
     frames = []
-    for t in range(20):
-        frame = flight.render(t).astype(int) + (4 if t >= 13 else 0) + (40 if t >= 17 else 0)
-        frames.append(np.clip(frame, 0, 255).astype(np.uint8))
+    for t in range(20):  # steady exposure, then a 2.5 %/frame drift, and two steps
+        gain = 1.0 - 0.025 * max(0, t - 8)
+        frame = flight.render(t) * gain + (4 if t >= 15 else 0) + (40 if t >= 18 else 0)
+        frames.append(np.clip(np.rint(frame), 0, 255).astype(np.uint8))
+    # the gains the channels see: within ±0.2 % of 1 (no compensation) and far from it
+    sums = [int(prefilter(f, params.weights).sum()) for f in frames]
+    ratios = [params.brightness_ratio_q(sums[t], sums[t - d]) for t in range(4, 20) for d in params.delays]
+    assert ratios.count(256) > 10 and len(set(ratios) - {256}) > 10
     assert _compare(width, height, frames, params) > 0
 
 

@@ -178,10 +178,9 @@ def test_brightness_compensation_keeps_a_drifting_static_scene_static():
 
 @pytest.mark.parametrize("gain", [1.3, 0.7])
 def test_a_gain_step_is_caught_with_brightness_compensation(gain):
-    """With brightness compensation a step's mean is taken out of the states, and what is
-    left of a gain step has both polarities: the step test counts the finest channel's
-    states as they would be without compensation, and flags it (three frames, quality 0);
-    the slow drift around it is not a step."""
+    """With brightness compensation a gain step is taken out of the states: the step test
+    counts the finest channel's states as they would be without compensation, and flags
+    it (three frames, quality 0); the slow drift around it is not a step."""
     from emdflow.params import MODELS
 
     est = emdflow.FlowEstimator(W, H, **MODELS["extended"])

@@ -319,6 +319,24 @@ def test_bench_ratios_of_medians_and_per_round(monkeypatch):
     assert "| per round |" in table and "| 6.00x | 3.00x |" in table
 
 
+def test_bench_stages_drift_gives_every_frame_a_gain_to_compensate():
+    """``--stages --drift 0.3`` profiles the brightness compensation's slower path: over
+    the slowest channel's 4 frames every frame of its clip has an exposure gain the
+    extended model compensates; without drift hardly any."""
+    from emdflow import bench
+    from emdflow.params import MODELS, EngineParams
+    from emdflow.reference import prefilter
+
+    params = EngineParams(**MODELS["extended"])
+    d = max(params.delays)
+    for drift in (0.0, 0.3):
+        # (the bench's own size: in a small frame the motion alone changes the brightness)
+        sums = [int(prefilter(f, params.weights).sum()) for f in bench._frames(640, 480, 40, drift)]
+        gains = [params.brightness_ratio_q(sums[t], sums[t - d]) for t in range(d, 40)]
+        compensated = sum(g != 256 for g in gains)
+        assert compensated == len(gains) if drift else compensated < len(gains) // 4, (drift, gains)
+
+
 def test_bench_model_option_runs_the_daemons_model(monkeypatch, capsys):
     """``--model extended`` benchmarks the daemon's default model (delays and adaptive
     threshold from ``emdflow.params.MODELS``); ``--delays`` overrides the delays alone."""
@@ -328,8 +346,8 @@ def test_bench_model_option_runs_the_daemons_model(monkeypatch, capsys):
     seen = []
     real = bench.profile_stages
     monkeypatch.setattr(bench, "profile_stages",
-                        lambda w, h, backend_kwargs=None: seen.append(backend_kwargs) or real(w, h, frames=5,
-                                                                                             backend_kwargs=backend_kwargs))
+                        lambda w, h, backend_kwargs=None, **kw: seen.append(backend_kwargs) or real(
+                            w, h, frames=5, backend_kwargs=backend_kwargs, **kw))
     pytest.importorskip("pyopencl")
     assert bench.main(["--stages", "--sizes", "48x40", "--model", "extended"]) == 0
     assert "model: extended" in capsys.readouterr().out
