@@ -125,8 +125,9 @@ periodic edges) is the hardest texture. The quality says so: quality bands (rand
 192–255 → 5.9 % median error (90th percentile 12.5 %), 128–191 → 10.5 %, 64–127 →
 12.6 %, 1–63 → 24 % (without the misfit term 7.0 % (23 %), 10.6 %, 12.1 %, 32 %: brick's
 biased frames sat in the top band). Cost ≈ 0.29–0.31 ms per call on the 2-core host, plus
-~0.015 ms for the deviance (IoC guess ~0.03 ms, per-frame curves ~0.04 ms, search ~0.16 ms, of which the second fine pass
-~0.055 ms); the former 4-level search took ~0.8 ms.
+~0.015 ms for the deviance (IoC guess ~0.03 ms, per-frame curves ~0.04 ms, search
+~0.16 ms, of which the second fine pass ~0.055 ms); the former 4-level search took
+~0.8 ms.
 
 Extended model (``scales=(1, 3, …, 13, 15)``, ``delays=(1, 2, 4)``, ``delay_scales=(1,)``,
 adaptive threshold, brightness compensation; its own table with gradient-strength
@@ -242,7 +243,7 @@ class FlowSummary:
         How far the detections' code mixtures are from what the calibrated model predicts
         at the answer: the likelihood-ratio deviance per (tempered) detection against each
         histogram row's own mixture; 0 without a likelihood fit. Calibration flights show
-        ~0.1–0.6 (paper table) or ~0.5–1 (extended) depending on speed; more means a scene
+        ~0.1–0.6 (paper table) or ~0.25–1.2 (extended), rising with speed; more means a scene
         unlike the calibration's, and lowers the quality (``SummaryOptions.misfit_weight``).
     """
 
