@@ -414,15 +414,14 @@ class ReferenceEngine:
         for c, (k, d) in enumerate(prm.channels):
             if len(self._p_history) > d:
                 p_then = self._p_history[-1 - d]
-                change = receptor_change(p_now, p_then, k)
                 T = prm.box_threshold(k, self.theta_q)
                 ratio_q = prm.brightness_ratio_q(self._brightness[-1], self._brightness[-1 - d])
                 if ratio_q == 256:
-                    s_now = ternary_states(change, T)
+                    s_now = ternary_states(receptor_change(p_now, p_then, k), T)
                 else:  # exposure gain: 256 R(t) against ratio_q R(t - D), threshold 256 T
                     s_now = ternary_states(gain_compensated_change(p_now, p_then, k, ratio_q), 256 * T)
                     if (k, d) == (prm.scales[0], 1):  # the exposure-step test's states
-                        step_states = ternary_states(change, T)
+                        step_states = ternary_states(receptor_change(p_now, p_then, k), T)
             else:
                 s_now = zeros  # no frame D steps back yet: no change is known
             hist = self._state_history[(k, d)]

@@ -676,7 +676,7 @@ def _row_curves(model: _LikelihoodModel, hist: np.ndarray, exponent: float):
     per_sign = C * n_cat
     key, within = np.divmod(flat, per_sign)  # key = base row · 2 + sign
     vals = h.ravel().take(flat).astype(np.float32)
-    if exponent != 1.0:
+    if exponent != 1.0:  # row_weight, raised in float32 as before (the same curves bit for bit)
         vals *= n_row.take((key >> 1) * C + within // n_cat).astype(np.float32) ** np.float32(exponent - 1.0)
     table_rows = (key >> 1) * per_sign + within
     # one output row per (active base row, sign), both signs of a row present

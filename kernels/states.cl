@@ -102,44 +102,46 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
         int changed = 0, step_changed = 0, brightening = 0;
         for (int i = 0; i < NW; i++) {
             const int x = i * 32;
-            uint pw, nw, upw, unw;  /* states; u..: without compensation (exposure-step test) */
-            if (k == 1) {
-                /* a 1x1 receptor is the prefiltered pixel itself: P_t - P_(t-D), byte-wise */
-                __global const uchar *pn = P_now + y * PSTRIDE + PPAD + x, *pt = P_then + y * PSTRIDE + PPAD + x;
-                const uchar Tb = (uchar)(T > 255 ? 255 : T);
-                upw = exceeds32(pn, pt, Tb);
-                unw = exceeds32(pt, pn, Tb);
-                if (rq == 256) {
-                    pw = upw;
-                    nw = unw;
+            /* the states without compensation (u..): the channel's own unless there is a
+             * gain to compensate, and the exposure-step test's (finest channel) */
+            uint pw, nw, upw = 0, unw = 0;
+            /* a 1x1 receptor is the prefiltered pixel itself: P_t - P_(t-D) (k = 1 only) */
+            __global const uchar *pn = P_now + y * PSTRIDE + PPAD + x, *pt = P_then + y * PSTRIDE + PPAD + x;
+            if (rq == 256 || c == FINEST_CHANNEL) {
+                if (k == 1) {  /* byte-wise */
+                    const uchar Tb = (uchar)(T > 255 ? 255 : T);
+                    upw = exceeds32(pn, pt, Tb);
+                    unw = exceeds32(pt, pn, Tb);
+                } else if (k <= 11) {
+                    /* |now - then| <= 121 * 255 < 2^15: the int16 difference is exact */
+                    const short Ts = (short)CLAMPI(T, 0, 32767);
+                    short16 d0, d1;
+                    if (D == 1) {
+                        d0 = as_short16(box16(dsat, y, x, r));
+                        d1 = as_short16(box16(dsat, y, x + 16, r));
+                    } else {
+                        d0 = as_short16(box16(S_now, y, x, r) - box16(S_then, y, x, r));
+                        d1 = as_short16(box16(S_now, y, x + 16, r) - box16(S_then, y, x + 16, r));
+                    }
+                    upw = pack32(d0 > Ts, d1 > Ts);
+                    unw = pack32(d0 < (short)-Ts, d1 < (short)-Ts);
                 } else {
-                    gain32(convert_ushort16(LOAD_UC16(pn)), convert_ushort16(LOAD_UC16(pt)),
-                           convert_ushort16(LOAD_UC16(pn + 16)), convert_ushort16(LOAD_UC16(pt + 16)),
-                           rq, T256, &pw, &nw);
+                    const ushort16 now0 = box16(S_now, y, x, r), then0 = box16(S_then, y, x, r);
+                    const ushort16 now1 = box16(S_now, y, x + 16, r), then1 = box16(S_then, y, x + 16, r);
+                    upw = above32_u16(now0, then0, now1, then1, T);
+                    unw = above32_u16(then0, now0, then1, now1, T);
                 }
-            } else if (rq != 256) {
+            }
+            if (rq == 256) {
+                pw = upw;
+                nw = unw;
+            } else if (k == 1) {
+                gain32(convert_ushort16(LOAD_UC16(pn)), convert_ushort16(LOAD_UC16(pt)),
+                       convert_ushort16(LOAD_UC16(pn + 16)), convert_ushort16(LOAD_UC16(pt + 16)),
+                       rq, T256, &pw, &nw);
+            } else {
                 gain32(box16(S_now, y, x, r), box16(S_then, y, x, r), box16(S_now, y, x + 16, r),
                        box16(S_then, y, x + 16, r), rq, T256, &pw, &nw);
-                upw = pw;  /* (the exposure-step test reads the finest channel only) */
-                unw = nw;
-            } else if (k <= 11) {
-                /* |now - then| <= 121 * 255 < 2^15: the int16 difference is exact */
-                const short Ts = (short)CLAMPI(T, 0, 32767);
-                short16 d0, d1;
-                if (D == 1) {
-                    d0 = as_short16(box16(dsat, y, x, r));
-                    d1 = as_short16(box16(dsat, y, x + 16, r));
-                } else {
-                    d0 = as_short16(box16(S_now, y, x, r) - box16(S_then, y, x, r));
-                    d1 = as_short16(box16(S_now, y, x + 16, r) - box16(S_then, y, x + 16, r));
-                }
-                pw = upw = pack32(d0 > Ts, d1 > Ts);
-                nw = unw = pack32(d0 < (short)-Ts, d1 < (short)-Ts);
-            } else {
-                const ushort16 now0 = box16(S_now, y, x, r), then0 = box16(S_then, y, x, r);
-                const ushort16 now1 = box16(S_now, y, x + 16, r), then1 = box16(S_then, y, x + 16, r);
-                pw = upw = above32_u16(now0, then0, now1, then1, T);
-                nw = unw = above32_u16(then0, now0, then1, now1, T);
             }
             if (i == 0 || i >= i_edge) {
                 const uint valid = bit_range(r - x, W - 1 - r - x);
