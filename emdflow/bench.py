@@ -16,7 +16,8 @@ blocks ran seconds apart under the same load):
 * ``blur``     — one ``cv2.GaussianBlur`` 11×11 pass (a yardstick for memory speed).
 
 ``emdflow bench --stages`` prints instead where one frame's time goes: the device time of
-each command (upload, the four kernels, download) from OpenCL profiling events, the gaps
+each command (upload, the four kernels, download) from OpenCL profiling events (on a CPU
+device the frame buffer is host memory and "upload" is the host's copy into it), the gaps
 between them, the host's wall time per frame and the time of ``summarize`` after it.
 """
 
@@ -169,6 +170,11 @@ def profile_stages(width: int, height: int, *, frames: int = 200, backend_kwargs
     gaps = []
     kept = []
     for i in range(frames):
+        if engine.frame_host is not None:
+            # a CPU device reads the frame from host memory: the upload is the host's copy
+            t0 = time.perf_counter()
+            np.copyto(engine.frame_host, clip[i % len(clip)])
+            per_stage["upload"].append((time.perf_counter() - t0) * 1e3)
         t0 = time.perf_counter()
         codes = engine.step_packed(clip[i % len(clip)])[0]
         walls.append((time.perf_counter() - t0) * 1e3)
@@ -178,7 +184,7 @@ def profile_stages(width: int, height: int, *, frames: int = 200, backend_kwargs
         # pages for every frame's result would add page faults to the download
         events = engine.trace.pop()
         busy = 0.0
-        for name, ev in zip(OpenCLEngine.STAGES, events):
+        for name, ev in zip(engine.stages, events):
             ms = (ev.profile.end - ev.profile.start) * 1e-6
             per_stage[name].append(ms)
             busy += ms

@@ -21,7 +21,9 @@
  *   SHARP           1 to accept the sharp template
  *   EVIDENCE_ROW_STEP  rows between the rows whose detections feed the histogram
  *   EVIDENCE_COLUMNS   mask of the sampled columns within a 32-pixel word
- *   HIST_COPIES     copies of the histogram (spread the atomic increments over cache lines)
+ *   COUNTER_COPIES, SLOT_INTS, POS_COPIES, HIST_COPIES  copies of the counters (and their
+ *                   spacing in ints) and of the position and orientation histograms: they
+ *                   spread the atomic increments over cache lines (see STAT_POS below)
  *   POS_BINS        position bins of the detection position histogram
  *   FINEST_CHANNEL  channel whose positive states are counted (brightness steps)
  *   OW              words per row of the output bit planes (NW rounded up to 8)
@@ -46,9 +48,15 @@
 #define STAT_CONTRAST 5
 #define STAT_STEP_CHANGED 6
 #define STAT_CHANGED 7
-#define STAT_POS (STAT_CHANGED + NCH)
+/* The statistics (int32 from STATS_OFFSET) start with COUNTER_COPIES copies of the
+ * counters above, SLOT_INTS ints apart (whole cache lines): a work-group adds to copy
+ * (group index modulo the count), so the CPU threads, which take neighbouring groups,
+ * rarely increment the same cache line (atomics contended on one line took 0.03-0.04 ms
+ * per 640x480 frame in each kernel); the host sums the copies. Then POS_COPIES position
+ * histograms and HIST_COPIES orientation histograms, spread the same way. */
+#define STAT_POS (COUNTER_COPIES * SLOT_INTS)
 #define POS_SIZE (2 * 2 * NCH * POS_BINS)
-#define STAT_HIST (STAT_POS + POS_SIZE)
+#define STAT_HIST (STAT_POS + POS_COPIES * POS_SIZE)
 #define HIST_SIZE (2 * 2 * NCH * NCLASS * NBINS)
 
 __constant int CK[NCH] = { CH_K };

@@ -73,6 +73,8 @@ __kernel void velocity_detectors(__global const uint *planes, __global char *res
     const int y = get_global_id(1);
     if (y >= H) return;  /* the global size is padded to whole work-groups */
     __global int *stats = (__global int *)(result + STATS_OFFSET);
+    /* this work-group row's copy of the counters (common.cl) */
+    __global int *counters = stats + (get_group_id(1) % COUNTER_COPIES) * SLOT_INTS;
     __global uint *out = (__global uint *)result + y * OW + i;
 
     for (int axis = 0; axis < 2; axis++) {
@@ -106,17 +108,18 @@ __kernel void velocity_detectors(__global const uint *planes, __global char *res
         STORE_W8(o + 3 * H * OW, idx3);
         STORE_W8(o + 4 * H * OW, sign);   /* set only where a channel won */
         const uint count = lane_popcount(any);
-        if (count) ATOMIC_ADD(stats + (axis ? STAT_V : STAT_U), (int)count);
+        if (count) ATOMIC_ADD(counters + (axis ? STAT_V : STAT_U), (int)count);
         if (count && y % EVIDENCE_ROW_STEP == 0) {
             /* the summary's evidence (evidence.cl), from the planes just stored (in L1).
-             * HIST_COPIES histograms, one per work-group row modulo the count: the CPU
+             * Copies of the histograms, one per work-group row modulo the count: the CPU
              * threads then rarely increment the same cache line (the host adds them up) */
             __global int *hist = stats + STAT_HIST + (get_group_id(1) % HIST_COPIES) * HIST_SIZE;
+            __global int *positions = stats + STAT_POS + (get_group_id(1) % POS_COPIES) * POS_SIZE;
             bin_run pos_run = { -1, 0 }, hist_run = { -1, 0 };
             for (int w = 0; w < 8 && i + w < NW; w++)
-                bin_detections(stats + STAT_POS, hist, sat, P, t, theta_q, axis, y, i + w, o[w], o[w + H * OW],
+                bin_detections(positions, hist, sat, P, t, theta_q, axis, y, i + w, o[w], o[w + H * OW],
                                o[w + 2 * H * OW], o[w + 3 * H * OW], o[w + 4 * H * OW], &pos_run, &hist_run);
-            run_flush(stats + STAT_POS, &pos_run);
+            run_flush(positions, &pos_run);
             run_flush(hist, &hist_run);
         }
     }

@@ -65,7 +65,8 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
 {
     const int y = get_global_id(0);
     if (y >= H) return;  /* the global size is padded to whole work-groups */
-    __global int *stats = (__global int *)(result + STATS_OFFSET);
+    /* this work-group's copy of the counters (common.cl) */
+    __global int *stats = (__global int *)(result + STATS_OFFSET) + (get_group_id(0) % COUNTER_COPIES) * SLOT_INTS;
     __global const ushort *S_now = sat + (t % SAT_SLOTS) * SAT_SIZE;
     __global const uchar *P_now = P + (t % P_SLOTS) * P_SIZE;
 

@@ -181,6 +181,22 @@ def test_long_run_past_the_device_time_period():
     assert fired > 0
 
 
+@pytest.mark.parametrize("shared", [True, False], ids=["host-memory frame", "enqueued write"])
+def test_both_frame_upload_paths_are_exact(monkeypatch, shared):
+    """On a CPU device the kernels read the frame from host memory the engine copies it
+    into (no write command); other devices get an enqueued write. Both see every frame."""
+    if not shared:
+        monkeypatch.setattr(opencl_backend, "_shared_frame_buffer", lambda *args: None)
+    width, height = 83, 45
+    probe = opencl_backend.OpenCLEngine(width, height, EngineParams())
+    if shared and probe.frame_host is None:
+        pytest.skip("the OpenCL device does not share host memory")
+    assert (probe.frame_host is not None) == shared
+    assert ("upload" in probe.stages) != shared
+    flight = CameraFlight("grass", width=width, height=height, flow=(-2.6, 1.3), noise_sigma=2, seed=4)
+    assert _compare(width, height, [flight.render(t) for t in range(7)]) > 0
+
+
 def test_int_arguments_fall_back_to_the_public_setter():
     """The per-frame int arguments go through pyopencl's raw-bytes setter; a pyopencl
     without it, or where it refuses bytes, gets the public ``set_arg`` instead."""
