@@ -165,6 +165,7 @@ class _Layout:
     """Buffer geometry and compile-time constants for one frame size and parameter set."""
 
     SPAD = 16  # left padding of SAT rows (>= max radius + 1: 16-lane loads stay in bounds)
+    PHEAD = 8  # zero words before the first state plane (a run's left neighbour word)
     PPAD = 16  # left padding of P rows
     #: histogram memory the detector kernel spreads its evidence atomics over, in
     #: orientation histograms: 8 copies of a histogram without gradient-strength classes,
@@ -180,7 +181,10 @@ class _Layout:
         self.W, self.H = width, height
         self.NW = _ceil(width, 32)
         self.NSTRIPS = _ceil(width, 16)  # 16-column strips of the prefilter
-        self.NWP = _ceil(self.NW, 8) * 8 + 2  # 8-word vectors, a zero word each side
+        # plane rows of NW words, one zero word between rows: the detector kernel reads the
+        # planes as one flat run of words, 8 at a time across row ends (at 640 px 21 words
+        # a row instead of 24 when each row was padded to whole 8-word vectors)
+        self.NWP = self.NW + 1
         self.PADR = 2 * max(params.scales)
         self.PSTRIDE = self.PPAD + self.NW * 32 + 32
         self.SSTRIDE = self.SPAD + self.NW * 32 + 32
@@ -202,6 +206,10 @@ class _Layout:
         self.plane_slots = int(sum(self.rings))
         self.t_period = math.lcm(self.SAT_SLOTS, self.P_SLOTS, *self.rings)
         self.plane_words = (height + 2 * self.PADR) * self.NWP
+        # the detector kernel's 8-word runs: the flat words of rows 0..H-1 (each row's
+        # leading zero word included), padded to whole runs and groups of runs
+        self.n_runs = _ceil(height * self.NWP, 8)
+        self.OUT_PLANE = self.n_runs * 8
         self.sat_elems = (height + 1) * self.SSTRIDE
         self.hist_size = 2 * 2 * len(chans) * params.histogram_bins
         self.HIST_COPIES = max(1, self.HIST_BUDGET * ORIENTATION_BINS // params.histogram_bins)
@@ -211,10 +219,9 @@ class _Layout:
         self.pos_offset = self.COUNTER_COPIES * self.SLOT_INTS
         self.hist_offset = self.pos_offset + self.POS_COPIES * self.pos_size
         self.n_stats = self.hist_offset + self.HIST_COPIES * self.hist_size
-        # output: per axis five bit planes (winning channel index, 4 bits, and sign) of
-        # OW words per row (whole 8-word vectors)
-        self.OW = _ceil(self.NW, 8) * 8
-        self.out_words = 2 * 5 * height * self.OW
+        # output: per axis five bit planes (winning channel index, 4 bits, and sign) laid
+        # out as the state planes' rows (OUT_PLANE words each: H rows of NWP words, padded)
+        self.out_words = 2 * 5 * self.OUT_PLANE
         self.stats_offset = _ceil(4 * self.out_words, 64) * 64
         self.result_bytes = self.stats_offset + 4 * self.n_stats
         table = EngineParams.orientation_table()
@@ -224,7 +231,7 @@ class _Layout:
         join = lambda v: ", ".join(str(int(x)) for x in v)  # noqa: E731
         self.defines = {
             "W": width, "H": height, "NW": self.NW, "NWP": self.NWP, "PADR": self.PADR,
-            "OW": self.OW, "PSTRIDE": self.PSTRIDE, "PPAD": self.PPAD,
+            "PHEAD": self.PHEAD, "OUT_PLANE": self.OUT_PLANE, "PSTRIDE": self.PSTRIDE, "PPAD": self.PPAD,
             "P_SIZE": self.P_SIZE, "P_SLOTS": self.P_SLOTS,
             "SSTRIDE": self.SSTRIDE, "SPAD": self.SPAD, "SAT_SLOTS": self.SAT_SLOTS, "DSAT": self.DSAT,
             "NCH": len(chans),
@@ -248,6 +255,11 @@ class _Layout:
             "ORIENT_C": join(table[:, 0]),
             "ORIENT_S": join(table[:, 1]),
         }
+
+    def plane_rows(self, flat: np.ndarray) -> np.ndarray:
+        """(..., OUT_PLANE) words as laid out by the detector kernel -> (..., H, NW) (a view)."""
+        rows = flat[..., : self.H * self.NWP].reshape(*flat.shape[:-1], self.H, self.NWP)
+        return rows[..., 1:]
 
     def header(self) -> str:
         return "".join(f"#define {k} {v}\n" for k, v in self.defines.items())
@@ -321,20 +333,20 @@ class PackedCodes:
     __slots__ = ("words", "width")
 
     def __init__(self, words: np.ndarray, width: int):
-        self.words = words  # (2 axes, 5 planes, H, OW) uint32
+        self.words = words  # (2 axes, 5 planes, H, NW) uint32 (rows may be strided)
         self.width = width
 
     def decode(self) -> tuple[np.ndarray, np.ndarray]:
         # 8 pixels at a time: a byte of each plane indexes a table of 8 code bytes (bit b
         # of the index at each set pixel), and the sign byte a table of 0xFF masks
-        planes = self.words.astype("<u4", copy=False).view(np.uint8)  # (2, 5, H, 4 OW)
+        planes = self.words.astype("<u4", copy=False).view(np.uint8)  # (2, 5, H, 4 NW)
         spread = _SPREAD_TABLE
         code = spread[planes[:, 0]] | (spread[planes[:, 1]] << 1) | (spread[planes[:, 2]] << 2) \
             | (spread[planes[:, 3]] << 3)
         minus = spread[planes[:, 4]] * np.uint64(0xFF)
         # negate bytewise where the sign is set: (c ^ 0xFF) + 1, no carries (1 <= c <= 15)
         code = (code ^ minus) + (minus & np.uint64(0x0101010101010101))
-        codes = code.view(np.int8)  # (2, H, 32 OW)
+        codes = code.view(np.int8)  # (2, H, 32 NW)
         if codes.shape[-1] != self.width:
             codes = np.ascontiguousarray(codes[..., : self.width])
         return codes[0], codes[1]
@@ -375,12 +387,14 @@ class OpenCLEngine:
         self.p_buf = cl.Buffer(ctx, mf.READ_WRITE, lay.P_SIZE * lay.P_SLOTS + tail)
         self.sat_buf = cl.Buffer(ctx, mf.READ_WRITE, 2 * lay.sat_elems * lay.SAT_SLOTS + tail)
         self.dsat_buf = cl.Buffer(ctx, mf.READ_WRITE, (2 * lay.sat_elems if lay.DSAT else 0) + tail)
-        self.planes = cl.Buffer(ctx, mf.READ_WRITE, 4 * 2 * lay.plane_slots * lay.plane_words)
+        # (the last plane's last run may read a row and 16 words past its end)
+        plane_tail = lay.NWP + 16
+        self.planes = cl.Buffer(ctx, mf.READ_WRITE, 4 * (lay.PHEAD + 2 * lay.plane_slots * lay.plane_words + plane_tail))
         self.result = cl.Buffer(ctx, mf.READ_WRITE, lay.result_bytes)
         # brightness compensation: per slot of P the frame's pixel sum, then the
         # prefilter's per-strip sums (see prefilter.cl, integral.cl)
         self.bright_buf = cl.Buffer(ctx, mf.READ_WRITE, 4 * lay.P_SLOTS * (1 + lay.NSTRIPS))
-        debug_words = 4 * len(params.channels) * height * lay.NWP if debug else 1
+        debug_words = 4 * len(params.channels) * lay.OUT_PLANE if debug else 1
         self.debug_buf = cl.Buffer(ctx, mf.READ_WRITE, 4 * debug_words)
         for buf in (self.frame_buf, self.p_buf, self.sat_buf, self.dsat_buf):
             cl.enqueue_fill_buffer(self.queue, buf, np.uint8(0), 0, buf.size)
@@ -394,11 +408,11 @@ class OpenCLEngine:
         # Explicit work-group sizes: PoCL's own choice sometimes puts a whole frame in one
         # or two groups and then runs it on one thread. Global sizes are padded to whole
         # groups; the kernels return early past the frame.
-        strips, words = _ceil(width, 16), _ceil(lay.NW, 8)
-        self._l_strips, self._l_rows, self._l_words = (2,), (4,), (words, 8)
+        strips = _ceil(width, 16)
+        self._l_strips, self._l_rows, self._l_words = (2,), (4,), (8,)
         self._g_strips = (_ceil(strips, 2) * 2,)
         self._g_rows = (_ceil(height, 4) * 4,)
-        self._g_words = (words, _ceil(height, 8) * 8)
+        self._g_words = (_ceil(lay.n_runs, 8) * 8,)
         # buffer arguments are set once; per frame only the scalars change (pyopencl's
         # Kernel.__call__ would set every argument again: ~10 us per launch)
         zero = np.int32(0)
@@ -465,7 +479,8 @@ class OpenCLEngine:
         if self.trace is not None:  # profiling (emdflow bench --stages)
             self.trace.append(events)
         self.t += 1
-        codes = PackedCodes(host[: 4 * lay.out_words].view(np.uint32).reshape(2, 5, lay.H, lay.OW), lay.W)
+        codes = PackedCodes(lay.plane_rows(host[: 4 * lay.out_words].view(np.uint32).reshape(2, 5, lay.OUT_PLANE)),
+                            lay.W)
         ints = host[lay.stats_offset :].view(np.int32)
         n_ch = len(lay.channels)
         stats = _fold_copies(ints[: lay.pos_offset].reshape(lay.COUNTER_COPIES, lay.SLOT_INTS))[: lay.n_fixed]
@@ -492,8 +507,9 @@ class OpenCLEngine:
     def debug_states(self) -> list:
         """Ternary states of the last frame per channel, as int8 arrays (like the reference)."""
         lay = self.layout
-        planes = np.empty(2 * lay.plane_slots * lay.plane_words, np.uint32)
+        planes = np.empty(self.planes.size // 4, np.uint32)
         self._cl.enqueue_copy(self.queue, planes, self.planes)
+        planes = planes[lay.PHEAD : lay.PHEAD + 2 * lay.plane_slots * lay.plane_words]
         planes = planes.reshape(lay.plane_slots, 2, lay.H + 2 * lay.PADR, lay.NWP)
         out = []
         for c, _ in enumerate(lay.channels):
@@ -512,11 +528,11 @@ class OpenCLEngine:
         if not self.debug:
             raise RuntimeError("debug_matches() needs OpenCLEngine(..., debug=True)")
         lay = self.layout
-        words = np.empty(4 * len(lay.channels) * lay.H * lay.NWP, np.uint32)
+        words = np.empty(4 * len(lay.channels) * lay.OUT_PLANE, np.uint32)
         self._cl.enqueue_copy(self.queue, words, self.debug_buf)
-        words = words.reshape(len(lay.channels), 4, lay.H, lay.NWP)
+        words = lay.plane_rows(words.reshape(len(lay.channels), 4, lay.OUT_PLANE))
         return {
-            (c, d): self._unpack(words[c, j, :, : lay.NW])
+            (c, d): self._unpack(words[c, j])
             for c in range(len(lay.channels))
             for j, d in enumerate("EWSN")
         }

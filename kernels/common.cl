@@ -1,9 +1,9 @@
 /* Shared definitions. The host prepends the compile-time constants:
  *   W, H            frame size (px)
  *   NW              32-pixel words per row of a state plane (ceil(W / 32))
- *   NWP, PADR       padded plane row length (NW rounded up to 8 words, plus one zero word
- *                   on each side) and zero rows above and below (2 * max scale), so the
- *                   detectors never test bounds
+ *   NWP, PADR, PHEAD  plane row length (NW words and one zero word, so rows are separated
+ *                   by a zero word), zero rows above and below each plane (2 * max scale)
+ *                   and zero words before the first plane: the detectors never test bounds
  *   PSTRIDE, PPAD   row stride and left padding of the prefiltered image P (uchar)
  *   P_SIZE, P_SLOTS one slot of P (PSTRIDE * H) and the frames of P kept (max delay + 1)
  *   SSTRIDE, SPAD   row stride and left padding of the summed-area tables (ushort, H + 1 rows)
@@ -26,7 +26,8 @@
  *                   spread the atomic increments over cache lines (see STAT_POS below)
  *   POS_BINS        position bins of the detection position histogram
  *   FINEST_CHANNEL  channel whose positive states are counted (brightness steps)
- *   OW              words per row of the output bit planes (NW rounded up to 8)
+ *   OUT_PLANE       words of one output bit plane: rows of NWP words like the state planes
+ *                   (H NWP, rounded up to the detector kernel's 8-word runs)
  *   STATS_OFFSET    byte offset of the int32 statistics in the result buffer
  *   N_STATS         int32 statistics (counters, position and orientation histograms)
  *   NBINS           orientation bins; ORIENT_C, ORIENT_S boundary table (x 2^14)
@@ -37,7 +38,7 @@
  * vector code on machines without AVX-512 (LLVM aborts or broken cached binaries). */
 #define PLANE_WORDS ((H + 2 * PADR) * NWP)
 /* first word of row y of the plane (ring slot, polarity 0 = positive / 1 = negative) */
-#define PLANE_ROW(slot, pol, y) ((((slot) * 2 + (pol)) * PLANE_WORDS) + ((y) + PADR) * NWP + 1)
+#define PLANE_ROW(slot, pol, y) (PHEAD + (((slot) * 2 + (pol)) * PLANE_WORDS) + ((y) + PADR) * NWP + 1)
 #define SAT_SIZE ((H + 1) * SSTRIDE)
 
 #define STAT_U 0

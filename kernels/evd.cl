@@ -1,8 +1,11 @@
 /* Stage 4 (last): Elementary Velocity Detectors (paper section 3) and fusion, bit-sliced.
- * One work item per 8 consecutive 32-pixel words of a row (256 pixels, one uint8 vector
- * per bit plane); every template test is a few bitwise operations on whole vectors. The
- * state planes carry zero padding (a word left and right, PADR rows above and below), so
- * nothing tests bounds.
+ * One work item per run of 8 consecutive words of the state planes (up to 256 pixels, one
+ * uint8 vector per bit plane); every template test is a few bitwise operations on whole
+ * vectors. The planes' rows are read as one flat sequence of words: a row's NW words
+ * follow the zero word that separates it from the previous row, so a run may cross a row
+ * end and no work is spent on padding to whole vectors per row (at 640 px: 21 words a row
+ * instead of 24). Zero rows above and below and the zero words between rows mean nothing
+ * tests bounds, and a lane on a separating word never fires (it has no states).
  *
  * For channel (k, D), direction delta and pixel A = x: B = x + k delta, C = x + 2k delta;
  * the velocity template fires when the same (polarity, type) motion template matches
@@ -33,15 +36,16 @@ inline uint lane_popcount(uint8 v)
          + POPCOUNT(v.s4) + POPCOUNT(v.s5) + POPCOUNT(v.s6) + POPCOUNT(v.s7);
 }
 
-/* velocity template matches of channel c at the 256 pixels from word i of row y, for
- * the direction (dx, dy) in units of k */
-__attribute__((always_inline)) inline uint8 matches(__global const uint *planes, int c, int t, int y, int i, int ux, int uy)
+/* velocity template matches of channel c at the pixels of the run from flat word f (row
+ * f / NWP, word f % NWP - 1 of that row), for the direction (dx, dy) in units of k */
+__attribute__((always_inline)) inline uint8 matches(__global const uint *planes, int c, int t, int f, int ux, int uy)
 {
     const int k = CK[c], D = CD[c], L = CRING[c], base = CBASE[c];
     const int s0 = base + pos_mod(t - 2 * D, L), s1 = base + pos_mod(t - D, L), s2 = base + t % L;
-    __global const uint *P0 = planes + PLANE_ROW(s0, 0, y) + i, *N0 = planes + PLANE_ROW(s0, 1, y) + i;
-    __global const uint *P1 = planes + PLANE_ROW(s1, 0, y) + i, *N1 = planes + PLANE_ROW(s1, 1, y) + i;
-    __global const uint *P2 = planes + PLANE_ROW(s2, 0, y) + i, *N2 = planes + PLANE_ROW(s2, 1, y) + i;
+    f -= 1;  /* flat word 0 is row 0's leading zero word */
+    __global const uint *P0 = planes + PLANE_ROW(s0, 0, 0) + f, *N0 = planes + PLANE_ROW(s0, 1, 0) + f;
+    __global const uint *P1 = planes + PLANE_ROW(s1, 0, 0) + f, *N1 = planes + PLANE_ROW(s1, 1, 0) + f;
+    __global const uint *P2 = planes + PLANE_ROW(s2, 0, 0) + f, *N2 = planes + PLANE_ROW(s2, 1, 0) + f;
     const int dx = ux * k, dy = uy * k;
     const uint8 pa0 = LOAD_W8(P0), na0 = LOAD_W8(N0), pa1 = LOAD_W8(P1), na1 = LOAD_W8(N1);
     const uint8 pb0 = at(P0, dy, dx), nb0 = at(N0, dy, dx);
@@ -69,13 +73,16 @@ __kernel void velocity_detectors(__global const uint *planes, __global char *res
                                  __global uint *debug, __global const ushort *sat, __global const uchar *P, int t,
                                  int theta_q)
 {
-    const int i = get_global_id(0) * 8;   /* first word */
-    const int y = get_global_id(1);
-    if (y >= H) return;  /* the global size is padded to whole work-groups */
+    const int f = get_global_id(0) * 8;   /* first flat word of the run */
+    if (f >= H * NWP) return;  /* the global size is padded to whole work-groups */
     __global int *stats = (__global int *)(result + STATS_OFFSET);
-    /* this work-group row's copy of the counters (common.cl) */
-    __global int *counters = stats + (get_group_id(1) % COUNTER_COPIES) * SLOT_INTS;
-    __global uint *out = (__global uint *)result + y * OW + i;
+    /* this work-group's copy of the counters (common.cl) */
+    __global int *counters = stats + (get_group_id(0) % COUNTER_COPIES) * SLOT_INTS;
+    __global uint *out = (__global uint *)result + f;
+    /* does the run hold a row whose detections feed the summary's evidence? */
+    const int y_first = f / NWP, y_last = (f + 7) / NWP;
+    const int evidence_row = (y_first + EVIDENCE_ROW_STEP - 1) / EVIDENCE_ROW_STEP * EVIDENCE_ROW_STEP;
+    const bool evidence = evidence_row <= y_last && evidence_row < H;
 
     for (int axis = 0; axis < 2; axis++) {
         uint8 decided = (uint8)(0u), sign = (uint8)(0u);
@@ -83,13 +90,11 @@ __kernel void velocity_detectors(__global const uint *planes, __global char *res
 #pragma unroll
         for (int c = NCH - 1; c >= 0; c--) {
             /* E, W along the row; S, N k rows away */
-            const uint8 mp = axis ? matches(planes, c, t, y, i, 0, 1) : matches(planes, c, t, y, i, 1, 0);
-            const uint8 mn = axis ? matches(planes, c, t, y, i, 0, -1) : matches(planes, c, t, y, i, -1, 0);
+            const uint8 mp = axis ? matches(planes, c, t, f, 0, 1) : matches(planes, c, t, f, 1, 0);
+            const uint8 mn = axis ? matches(planes, c, t, f, 0, -1) : matches(planes, c, t, f, -1, 0);
 #ifdef DEBUG_MATCHES
-            if (i < NW) {
-                STORE_W8(debug + ((c * 4 + 2 * axis) * H + y) * NWP + i, mp);
-                STORE_W8(debug + ((c * 4 + 2 * axis + 1) * H + y) * NWP + i, mn);
-            }
+            STORE_W8(debug + (c * 4 + 2 * axis) * OUT_PLANE + f, mp);
+            STORE_W8(debug + (c * 4 + 2 * axis + 1) * OUT_PLANE + f, mn);
 #endif
             const uint8 p = mp & ~decided, n = mn & ~decided, won = p ^ n;
             sign |= n & ~p;
@@ -99,26 +104,30 @@ __kernel void velocity_detectors(__global const uint *planes, __global char *res
             if ((c + 1) & 8) idx3 |= won;
             decided |= mp | mn;
         }
-        /* planes (axis, bit, y, word) */
-        __global uint *o = out + axis * 5 * H * OW;
+        /* planes (axis, bit, flat word) */
+        __global uint *o = out + axis * 5 * OUT_PLANE;
         const uint8 any = idx0 | idx1 | idx2 | idx3;
         STORE_W8(o, idx0);
-        STORE_W8(o + H * OW, idx1);
-        STORE_W8(o + 2 * H * OW, idx2);
-        STORE_W8(o + 3 * H * OW, idx3);
-        STORE_W8(o + 4 * H * OW, sign);   /* set only where a channel won */
+        STORE_W8(o + OUT_PLANE, idx1);
+        STORE_W8(o + 2 * OUT_PLANE, idx2);
+        STORE_W8(o + 3 * OUT_PLANE, idx3);
+        STORE_W8(o + 4 * OUT_PLANE, sign);   /* set only where a channel won */
         const uint count = lane_popcount(any);
         if (count) ATOMIC_ADD(counters + (axis ? STAT_V : STAT_U), (int)count);
-        if (count && y % EVIDENCE_ROW_STEP == 0) {
+        if (count && evidence) {
             /* the summary's evidence (evidence.cl), from the planes just stored (in L1).
              * Copies of the histograms, one per work-group row modulo the count: the CPU
              * threads then rarely increment the same cache line (the host adds them up) */
-            __global int *hist = stats + STAT_HIST + (get_group_id(1) % HIST_COPIES) * HIST_SIZE;
-            __global int *positions = stats + STAT_POS + (get_group_id(1) % POS_COPIES) * POS_SIZE;
+            __global int *hist = stats + STAT_HIST + (get_group_id(0) % HIST_COPIES) * HIST_SIZE;
+            __global int *positions = stats + STAT_POS + (get_group_id(0) % POS_COPIES) * POS_SIZE;
             bin_run pos_run = { -1, 0 }, hist_run = { -1, 0 };
-            for (int w = 0; w < 8 && i + w < NW; w++)
-                bin_detections(positions, hist, sat, P, t, theta_q, axis, y, i + w, o[w], o[w + H * OW],
-                               o[w + 2 * H * OW], o[w + 3 * H * OW], o[w + 4 * H * OW], &pos_run, &hist_run);
+            for (int w = 0; w < 8; w++) {
+                const int y = (f + w) / NWP, i = f + w - y * NWP - 1;
+                if (y % EVIDENCE_ROW_STEP == 0 && y < H && i >= 0)
+                    bin_detections(positions, hist, sat, P, t, theta_q, axis, y, i, o[w], o[w + OUT_PLANE],
+                                   o[w + 2 * OUT_PLANE], o[w + 3 * OUT_PLANE], o[w + 4 * OUT_PLANE],
+                                   &pos_run, &hist_run);
+            }
             run_flush(positions, &pos_run);
             run_flush(hist, &hist_run);
         }
