@@ -2,7 +2,9 @@
 
 Run ``emdflow bench`` (or ``python -m emdflow.bench``). All methods run in one process on
 the same pre-rendered frames of a camera flight, alternating method by method in blocks
-(default 50 frames, long enough not to measure thread wake-ups); the table gives the
+(default 50 frames, long enough not to measure thread wake-ups; each block starts with
+two untimed frames of the same method, because the first frame after another method's
+block took 2-3x a steady one here: threads waking up, caches refilled); the table gives the
 median ms/frame over the blocks and ratios measured in the same run (DIS / OpenCL twice:
 the ratio of the medians, and the median over the rounds of each round's ratio, whose
 blocks ran seconds apart under the same load):
@@ -70,11 +72,13 @@ def _methods(width: int, height: int, frames, *, backend_kwargs=None):
 
 
 def run_benchmark(*, sizes=SIZES, block: int = 50, rounds: int = 7, numpy_block: int = 3,
-                  frames_per_size: int = 40, backend_kwargs=None, progress=None) -> dict:
+                  frames_per_size: int = 40, backend_kwargs=None, progress=None, warmup: int = 2) -> dict:
     """Time every method; returns ``{(w, h): {method: median ms/frame}}``, plus
     ``"dis_per_opencl_paired"``: the median over the rounds of each round's DIS / OpenCL
     time ratio (less sensitive than the ratio of the medians to load that comes and goes
-    between rounds)."""
+    between rounds). Each block but the numpy reference's (100 ms frames) starts with
+    ``warmup`` untimed frames (the frames just before the block's, so the engines' history
+    runs on without a jump)."""
     results = {}
     for width, height in sizes:
         frames = _frames(width, height, frames_per_size)
@@ -87,6 +91,8 @@ def run_benchmark(*, sizes=SIZES, block: int = 50, rounds: int = 7, numpy_block:
         for r in range(rounds):
             for name, fn in methods.items():  # alternate A/B/C... in blocks
                 count = numpy_block if name == "numpy" else block
+                for j in range(0 if name == "numpy" else warmup, 0, -1):
+                    fn((cursor - j) % len(frames))
                 t0 = time.perf_counter()
                 for j in range(count):
                     fn((cursor + j) % len(frames))
@@ -235,6 +241,8 @@ def main(argv=None) -> int:
     parser.add_argument("--sizes", default="320x240,640x480", help="comma-separated WxH (default: %(default)s)")
     parser.add_argument("--block", type=int, default=50, help="frames per timed block (default: %(default)s)")
     parser.add_argument("--rounds", type=int, default=7, help="alternating rounds (default: %(default)s)")
+    parser.add_argument("--warmup", type=int, default=2,
+                        help="untimed frames at the start of each block (default: %(default)s)")
     parser.add_argument("--plot", metavar="PNG", help="also write a bar chart to this PNG file")
     parser.add_argument("--json", metavar="FILE", help="also write the results as JSON")
     parser.add_argument("--model", default="paper", choices=tuple(MODELS),
@@ -263,7 +271,8 @@ def main(argv=None) -> int:
             cells = " | ".join(f"{name} {ms:.3f}" for name, ms in stages.items())
             print(f"{width}x{height} (median ms per frame): {cells}")
         return 0
-    results = run_benchmark(sizes=sizes, block=args.block, rounds=args.rounds, backend_kwargs=kwargs,
+    results = run_benchmark(sizes=sizes, block=args.block, rounds=args.rounds, warmup=args.warmup,
+                            backend_kwargs=kwargs,
                             progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
     print(format_table(results))
     if args.plot:

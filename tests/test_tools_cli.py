@@ -319,6 +319,36 @@ def test_bench_ratios_of_medians_and_per_round(monkeypatch):
     assert "| per round |" in table and "| 6.00x | 3.00x |" in table
 
 
+def test_bench_blocks_start_with_untimed_frames(monkeypatch):
+    """The first frame after another method's block is slow (threads wake up, caches
+    refill): each block starts with ``warmup`` untimed frames of its own method, the
+    frames just before the block's (numpy, 100 ms a frame, gets none)."""
+    from emdflow import bench
+
+    state = {"t": 0.0, "last": None}
+    calls = {}
+
+    def methods(width, height, frames, backend_kwargs=None):
+        def make(name):
+            def run(i):
+                state["t"] += (10.0 if state["last"] != name else 1.0) * 1e-3
+                state["last"] = name
+                calls.setdefault(name, []).append(i)
+            return run
+        return {name: make(name) for name in ["opencl", "opencl+summary", "numpy", "dis", "blur"]}
+
+    monkeypatch.setattr(bench, "_methods", methods)
+    monkeypatch.setattr(bench, "_frames", lambda w, h, n: [None] * n)
+    monkeypatch.setattr(bench.time, "perf_counter", lambda: state["t"])
+    steady = bench.run_benchmark(sizes=((64, 48),), block=4, rounds=3)[(64, 48)]
+    assert steady["opencl"] == pytest.approx(1.0) and steady["dis"] == pytest.approx(1.0)
+    assert steady["numpy"] == pytest.approx((10 + 1 + 1) / 3)
+    # warm-up (4 frames 0..3), then per round 2 untimed frames before the block's 4
+    assert calls["opencl"][4:12] == [38, 39, 0, 1, 2, 3, 2, 3]
+    cold = bench.run_benchmark(sizes=((64, 48),), block=4, rounds=3, warmup=0)[(64, 48)]
+    assert cold["opencl"] == pytest.approx((10 + 3) / 4)
+
+
 def test_bench_stages_drift_gives_every_frame_a_gain_to_compensate():
     """``--stages --drift 0.3`` profiles the brightness compensation's slower path: over
     the slowest channel's 4 frames every frame of its clip has an exposure gain the
