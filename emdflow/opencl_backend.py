@@ -130,27 +130,36 @@ def _fold_copies(copies: np.ndarray) -> np.ndarray:
     return copies[0].astype(np.int64) if copies.shape[0] == 1 else copies.sum(axis=0, dtype=np.int64)
 
 
-def _shared_frame_buffer(cl, ctx, queue, device, size: int):
-    """``(buffer, host_array)`` of a frame buffer whose memory the host writes directly,
-    or None. On a CPU device a ``USE_HOST_PTR`` buffer is the host's memory itself (PoCL
-    uses an aligned host pointer as is), so a frame reaches the kernels with one numpy
-    copy instead of an enqueued write: ~0.03 ms less per 640x480 frame here, most of it
-    the write command's hand-over to PoCL's threads. The host writes only between frames
-    (the previous frame's download has finished, and with it every kernel that read the
-    buffer). Whether the device really sees such writes is checked here, twice (a runtime
-    that copies the memory once at creation fails the second check); anything else uses
-    enqueued writes."""
+def _shared_buffer(cl, ctx, queue, device, size: int, host_writes: bool):
+    """``(buffer, host_array)`` of a buffer whose memory the host accesses directly, or
+    None. On a CPU device a ``USE_HOST_PTR`` buffer is the host's memory itself (PoCL uses
+    an aligned host pointer as is): the frame then reaches the kernels by one numpy copy
+    into it instead of an enqueued write, and the result is read where the kernels wrote
+    it, without a download command (each command's hand-over to PoCL's threads and back
+    cost more than the copy itself: together ~0.05-0.1 ms per 640x480 frame here). The
+    host touches the memory only between frames, when every command of the previous
+    frame has finished. Whether the two sides really share it is checked here
+    (``host_writes``: the device sees the host's writes, else the host sees the
+    device's), twice, so a runtime that copies the memory once fails; any other device
+    uses enqueued copies."""
     if not device.type & cl.device_type.CPU:
         return None
     raw = np.empty(size + 4096, np.uint8)
     host = raw[(-raw.ctypes.data) % 4096 :][:size]  # page-aligned
+    flags = cl.mem_flags.READ_ONLY if host_writes else cl.mem_flags.READ_WRITE
     try:
-        buf = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.USE_HOST_PTR, hostbuf=host)
+        buf = cl.Buffer(ctx, flags | cl.mem_flags.USE_HOST_PTR, hostbuf=host)
         seen = np.empty(size, np.uint8)
-        for pattern in (np.arange(size) % 251, np.arange(size) % 241 + 7):
-            host[:] = pattern
-            cl.enqueue_copy(queue, seen, buf, is_blocking=True)
-            if not np.array_equal(seen, host):
+        for value in (0x5A, 0xA5):
+            if host_writes:
+                host[:] = np.arange(size) % 251 ^ value
+                cl.enqueue_copy(queue, seen, buf, is_blocking=True)
+                shared = np.array_equal(seen, host)
+            else:
+                cl.enqueue_fill_buffer(queue, buf, np.uint8(value), 0, size)
+                queue.finish()
+                shared = bool(np.all(host == value))
+            if not shared:
                 return None
     except cl.Error:  # pragma: no cover - depends on the runtime
         return None
@@ -374,23 +383,29 @@ class OpenCLEngine:
         mf = cl.mem_flags
         ctx = self.ctx
         tail = 64  # vector loads of the last row may run past its end
-        shared = _shared_frame_buffer(cl, ctx, self.queue, self.device, width * height + tail)
+        shared = _shared_buffer(cl, ctx, self.queue, self.device, width * height + tail, host_writes=True)
         if shared is not None:
             self.frame_buf, host = shared
             #: the frame buffer's memory as a host array (a CPU device), or None
             self.frame_host = host[: width * height].reshape(height, width)
         else:
             self.frame_buf, self.frame_host = cl.Buffer(ctx, mf.READ_ONLY, width * height + tail), None
-        #: names of the commands of one frame, in the order of ``trace`` entries (no
-        #: upload command when the host writes the frame buffer itself)
-        self.stages = self.STAGES[1:] if self.frame_host is not None else self.STAGES
         self.p_buf = cl.Buffer(ctx, mf.READ_WRITE, lay.P_SIZE * lay.P_SLOTS + tail)
         self.sat_buf = cl.Buffer(ctx, mf.READ_WRITE, 2 * lay.sat_elems * lay.SAT_SLOTS + tail)
         self.dsat_buf = cl.Buffer(ctx, mf.READ_WRITE, (2 * lay.sat_elems if lay.DSAT else 0) + tail)
         # (the last plane's last run may read a row and 16 words past its end)
         plane_tail = lay.NWP + 16
         self.planes = cl.Buffer(ctx, mf.READ_WRITE, 4 * (lay.PHEAD + 2 * lay.plane_slots * lay.plane_words + plane_tail))
-        self.result = cl.Buffer(ctx, mf.READ_WRITE, lay.result_bytes)
+        shared = _shared_buffer(cl, ctx, self.queue, self.device, lay.result_bytes, host_writes=False)
+        #: the result buffer's memory as a host array (a CPU device), or None
+        self.result, self.result_host = shared if shared is not None else (
+            cl.Buffer(ctx, mf.READ_WRITE, lay.result_bytes), None)
+        #: names of the commands of one frame, in the order of ``trace`` entries (no
+        #: upload / download command where the host shares the buffer's memory)
+        self.stages = tuple(name for name, shared in (("upload", self.frame_host is not None),
+                                                       *((k, False) for k in self.STAGES[1:-1]),
+                                                       ("download", self.result_host is not None))
+                            if not shared)
         # brightness compensation: per slot of P the frame's pixel sum, then the
         # prefilter's per-strip sums (see prefilter.cl, integral.cl)
         self.bright_buf = cl.Buffer(ctx, mf.READ_WRITE, 4 * lay.P_SLOTS * (1 + lay.NSTRIPS))
@@ -462,7 +477,6 @@ class OpenCLEngine:
         self._set_states(7, int(self.theta_q))
         self._set_evd(5, t)
         self._set_evd(6, int(self.theta_q))
-        host = np.empty(lay.result_bytes, np.uint8)
         if self.frame_host is not None:
             np.copyto(self.frame_host, frame)
             upload = ()
@@ -474,13 +488,21 @@ class OpenCLEngine:
             launch(q, self._k_integral, self._g_rows, self._l_rows),
             launch(q, self._k_states, self._g_rows, self._l_rows),
             launch(q, self._k_evd, self._g_words, self._l_words),
-            cl.enqueue_copy(q, host, self.result, is_blocking=True),
         )
+        if self.result_host is not None:
+            events[-1].wait()
+            host = self.result_host
+            # the bit planes become the caller's (the next frame overwrites this memory);
+            # the statistics below are summed into new arrays anyway
+            planes = host[: 4 * lay.out_words].copy()
+        else:
+            host = np.empty(lay.result_bytes, np.uint8)
+            events += (cl.enqueue_copy(q, host, self.result, is_blocking=True),)
+            planes = host[: 4 * lay.out_words]
         if self.trace is not None:  # profiling (emdflow bench --stages)
             self.trace.append(events)
         self.t += 1
-        codes = PackedCodes(lay.plane_rows(host[: 4 * lay.out_words].view(np.uint32).reshape(2, 5, lay.OUT_PLANE)),
-                            lay.W)
+        codes = PackedCodes(lay.plane_rows(planes.view(np.uint32).reshape(2, 5, lay.OUT_PLANE)), lay.W)
         ints = host[lay.stats_offset :].view(np.int32)
         n_ch = len(lay.channels)
         stats = _fold_copies(ints[: lay.pos_offset].reshape(lay.COUNTER_COPIES, lay.SLOT_INTS))[: lay.n_fixed]

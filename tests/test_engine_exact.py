@@ -181,20 +181,28 @@ def test_long_run_past_the_device_time_period():
     assert fired > 0
 
 
-@pytest.mark.parametrize("shared", [True, False], ids=["host-memory frame", "enqueued write"])
-def test_both_frame_upload_paths_are_exact(monkeypatch, shared):
+@pytest.mark.parametrize("shared", [True, False], ids=["host memory", "enqueued copies"])
+def test_both_transfer_paths_are_exact(monkeypatch, shared):
     """On a CPU device the kernels read the frame from host memory the engine copies it
-    into (no write command); other devices get an enqueued write. Both see every frame."""
+    into and write the result where the host reads it (no write or read command); other
+    devices get enqueued copies. Both see every frame, and the caller's codes stay valid
+    after the next frame."""
     if not shared:
-        monkeypatch.setattr(opencl_backend, "_shared_frame_buffer", lambda *args: None)
+        monkeypatch.setattr(opencl_backend, "_shared_buffer", lambda *args, **kwargs: None)
     width, height = 83, 45
     probe = opencl_backend.OpenCLEngine(width, height, EngineParams())
     if shared and probe.frame_host is None:
         pytest.skip("the OpenCL device does not share host memory")
-    assert (probe.frame_host is not None) == shared
-    assert ("upload" in probe.stages) != shared
+    assert (probe.frame_host is not None) == (probe.result_host is not None) == shared
+    assert ("upload" in probe.stages) == ("download" in probe.stages) != shared
     flight = CameraFlight("grass", width=width, height=height, flow=(-2.6, 1.3), noise_sigma=2, seed=4)
-    assert _compare(width, height, [flight.render(t) for t in range(7)]) > 0
+    frames = [flight.render(t) for t in range(8)]
+    kept = [probe.step_packed(f)[0] for f in frames[:7]]
+    before = [k.decode() for k in kept]
+    probe.step_packed(frames[7])
+    assert any(a[0].any() for a in before)
+    assert all(np.array_equal(a[0], k.decode()[0]) for a, k in zip(before, kept))
+    assert _compare(width, height, frames) > 0
 
 
 def test_int_arguments_fall_back_to_the_public_setter():
