@@ -5,7 +5,9 @@ summed-area tables of the last ``max(delays) + 1`` prefiltered frames and, per c
 ring of ``2D + 1`` bit-packed ternary state planes. Per frame: one upload of the uint8
 frame, four kernel launches on an in-order queue, one blocking download of one result
 buffer (flow bit planes + statistics + detection histogram; the int8 codes are unpacked
-on the host only when the dense field is read). Sizes and tables are compile-time
+on the host only when the dense field is read). On a CPU device the frame and result
+buffers are host memory (``_shared_buffer``): the upload is a numpy copy, the download a
+wait for the last kernel and a copy of the bit planes. Sizes and tables are compile-time
 constants; a program is built once per process and shape (PoCL also caches the binary on
 disk, ``POCL_CACHE_DIR``).
 """
@@ -402,10 +404,9 @@ class OpenCLEngine:
             cl.Buffer(ctx, mf.READ_WRITE, lay.result_bytes), None)
         #: names of the commands of one frame, in the order of ``trace`` entries (no
         #: upload / download command where the host shares the buffer's memory)
-        self.stages = tuple(name for name, shared in (("upload", self.frame_host is not None),
-                                                       *((k, False) for k in self.STAGES[1:-1]),
-                                                       ("download", self.result_host is not None))
-                            if not shared)
+        skipped = {"upload"} if self.frame_host is not None else set()
+        skipped |= {"download"} if self.result_host is not None else set()
+        self.stages = tuple(name for name in self.STAGES if name not in skipped)
         # brightness compensation: per slot of P the frame's pixel sum, then the
         # prefilter's per-strip sums (see prefilter.cl, integral.cl)
         self.bright_buf = cl.Buffer(ctx, mf.READ_WRITE, 4 * lay.P_SLOTS * (1 + lay.NSTRIPS))
