@@ -367,6 +367,27 @@ def test_bench_stages_drift_gives_every_frame_a_gain_to_compensate():
         assert compensated == len(gains) if drift else compensated < len(gains) // 4, (drift, gains)
 
 
+def test_engine_ab_times_another_checkout_in_the_same_process(capsys):
+    """``python -m emdflow.tools.engine_ab CHECKOUT`` loads another checkout's package and
+    kernels under another module name and alternates both engines' blocks (here: this
+    checkout against itself); a path that is no checkout is a one-line error."""
+    from pathlib import Path
+
+    from emdflow.tools import ToolError, engine_ab
+
+    pytest.importorskip("pyopencl")
+    root = Path(__file__).resolve().parents[1]
+    other = engine_ab.load_checkout(root, name="emdflow_ab_test")
+    assert other.FlowEstimator is not __import__("emdflow").FlowEstimator
+    r = engine_ab.compare(other, 64, 48, rounds=3, block=4)
+    assert len(r["other"]) == len(r["this"]) == 3 and all(x > 0 for x in r["other"] + r["this"])
+    assert 0.2 < r["ratio"] < 5
+    with pytest.raises(ToolError, match="not an emdflow checkout"):
+        engine_ab.load_checkout(root / "tests")
+    assert engine_ab.main([str(root / "tests")]) == 2
+    assert "not an emdflow checkout" in capsys.readouterr().err
+
+
 def test_bench_model_option_runs_the_daemons_model(monkeypatch, capsys):
     """``--model extended`` benchmarks the daemon's default model (delays and adaptive
     threshold from ``emdflow.params.MODELS``); ``--delays`` overrides the delays alone."""

@@ -18,6 +18,9 @@ calibrate_summary
 zoom_eval
     ``python -m emdflow.tools.zoom_eval``: the expansion-rate cue on zoom flights (measure,
     calibrate).
+engine_ab
+    ``python -m emdflow.tools.engine_ab CHECKOUT``: the OpenCL engine against another
+    checkout's, alternating in one process (speed changes of a few percent).
 
 This package module holds what the subcommands share: :class:`ToolError` (a one-line
 message plus an exit code), the engine options, a progress bar, and the linear soft

@@ -1,0 +1,104 @@
+"""A/B of the OpenCL engine against another checkout's, in one process.
+
+The machine's speed drifts by tens of percent from minute to minute, so two benchmark runs
+a minute apart cannot show a change of a few percent. This tool loads the other checkout's
+``emdflow`` package (and its ``kernels/``) next to this one, under another module name,
+and times both engines' ``FlowEstimator.update`` on the same camera-flight frames in
+alternating blocks (default 12 rounds of 50 frames, each block after two untimed frames);
+it prints both medians and the median over the rounds of each round's "other / this"
+ratio (> 1: this checkout is faster)::
+
+    git worktree add /tmp/before HEAD~1
+    python -m emdflow.tools.engine_ab /tmp/before                       # paper, 640x480
+    python -m emdflow.tools.engine_ab /tmp/before --model extended --size 320x240
+
+The other checkout must have the source layout (``emdflow/`` and ``kernels/`` side by
+side) and the same public API (``FlowEstimator``, ``emdflow.params.MODELS``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import statistics
+import sys
+import time
+from pathlib import Path
+
+from emdflow.params import MODELS
+from emdflow.tools import ToolError
+
+__all__ = ["load_checkout", "compare", "main"]
+
+
+def load_checkout(root: Path, name: str = "emdflow_other"):
+    """Import ``root/emdflow`` as the package ``name``, reading its kernels from
+    ``root/kernels``."""
+    package = root / "emdflow" / "__init__.py"
+    if not package.is_file() or not (root / "kernels").is_dir():
+        raise ToolError(f"{root}: not an emdflow checkout (needs emdflow/__init__.py and kernels/)")
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, package, submodule_search_locations=[str(package.parent)])
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    backend = importlib.import_module(f"{name}.opencl_backend")
+    backend.kernel_source = lambda stage: (root / "kernels" / stage).read_text()
+    return module
+
+
+def compare(other, width: int, height: int, model: str = "paper", rounds: int = 12, block: int = 50,
+            warmup: int = 2) -> dict:
+    """Alternating blocks of ``other.FlowEstimator`` and this checkout's on one camera
+    flight; returns the per-round ms/frame of both and the median paired ratio."""
+    import emdflow
+    from emdflow.bench import _frames
+
+    frames = _frames(width, height, 40)
+    engines = {"other": other.FlowEstimator(width, height, **MODELS[model]),
+               "this": emdflow.FlowEstimator(width, height, **MODELS[model])}
+    for est in engines.values():
+        for frame in frames[:10]:
+            est.update(frame)
+    times = {name: [] for name in engines}
+    for r in range(rounds):
+        for name, est in engines.items():
+            first = r * block
+            for j in range(warmup, 0, -1):
+                est.update(frames[(first - j) % len(frames)])
+            t0 = time.perf_counter()
+            for j in range(block):
+                est.update(frames[(first + j) % len(frames)])
+            times[name].append((time.perf_counter() - t0) * 1e3 / block)
+    return {**times, "ratio": statistics.median(o / t for o, t in zip(times["other"], times["this"]))}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m emdflow.tools.engine_ab", description=__doc__.splitlines()[0])
+    ap.add_argument("checkout", type=Path, help="the other checkout (e.g. a git worktree)")
+    ap.add_argument("--size", default="640x480", help="WxH (default: %(default)s)")
+    ap.add_argument("--model", default="paper", choices=tuple(MODELS))
+    ap.add_argument("--rounds", type=int, default=12)
+    ap.add_argument("--block", type=int, default=50)
+    a = ap.parse_args(argv)
+    try:
+        width, height = (int(v) for v in a.size.lower().split("x"))
+    except ValueError:
+        ap.error(f"--size {a.size!r}: expected WxH, e.g. 640x480")
+    try:
+        other = load_checkout(a.checkout.resolve())
+        r = compare(other, width, height, a.model, a.rounds, a.block)
+    except ToolError as exc:
+        print(f"engine_ab: {exc}", file=sys.stderr)
+        return 2
+    print(f"{a.model} {width}x{height}: other {statistics.median(r['other']):.3f} ms, "
+          f"this {statistics.median(r['this']):.3f} ms per frame; other / this per round "
+          f"(median of {a.rounds}): {r['ratio']:.3f}")
+    print("  rounds other:", " ".join(f"{x:.2f}" for x in r["other"]))
+    print("  rounds this: ", " ".join(f"{x:.2f}" for x in r["this"]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
