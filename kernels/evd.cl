@@ -116,8 +116,8 @@ __kernel void velocity_detectors(__global const uint *planes, __global char *res
         if (count) ATOMIC_ADD(counters + (axis ? STAT_V : STAT_U), (int)count);
         if (count && evidence) {
             /* the summary's evidence (evidence.cl), from the planes just stored (in L1).
-             * Copies of the histograms, one per work-group row modulo the count: the CPU
-             * threads then rarely increment the same cache line (the host adds them up) */
+             * Copies of the histograms, one per work-group index modulo their count: the
+             * CPU threads then rarely increment the same cache line (the host adds them up) */
             __global int *hist = stats + STAT_HIST + (get_group_id(0) % HIST_COPIES) * HIST_SIZE;
             __global int *positions = stats + STAT_POS + (get_group_id(0) % POS_COPIES) * POS_SIZE;
             bin_run pos_run = { -1, 0 }, hist_run = { -1, 0 };
