@@ -408,8 +408,8 @@ class OpenCLEngine:
         skipped |= {"download"} if self.result_host is not None else set()
         self.stages = tuple(name for name in self.STAGES if name not in skipped)
         # brightness compensation: per slot of P the frame's pixel sum, then the
-        # prefilter's per-strip sums (see prefilter.cl, integral.cl)
-        self.bright_buf = cl.Buffer(ctx, mf.READ_WRITE, 4 * lay.P_SLOTS * (1 + lay.NSTRIPS))
+        # prefilter's per-strip sums, then each channel's gain (see common.cl, integral.cl)
+        self.bright_buf = cl.Buffer(ctx, mf.READ_WRITE, 4 * (lay.P_SLOTS * (1 + lay.NSTRIPS) + len(params.channels)))
         debug_words = 4 * len(params.channels) * lay.OUT_PLANE if debug else 1
         self.debug_buf = cl.Buffer(ctx, mf.READ_WRITE, 4 * debug_words)
         for buf in (self.frame_buf, self.p_buf, self.sat_buf, self.dsat_buf):

@@ -40,6 +40,9 @@
 /* first word of row y of the plane (ring slot, polarity 0 = positive / 1 = negative) */
 #define PLANE_ROW(slot, pol, y) (PHEAD + (((slot) * 2 + (pol)) * PLANE_WORDS) + ((y) + PADR) * NWP + 1)
 #define SAT_SIZE ((H + 1) * SSTRIDE)
+/* brightness compensation's buffer: the pixel sum of each slot of P, the prefilter's
+ * strip sums per slot, then each channel's exposure gain x256 (integral.cl) */
+#define BRIGHT_RATIO (P_SLOTS * (1 + NSTRIPS))
 
 #define STAT_U 0
 #define STAT_V 1

@@ -9,7 +9,9 @@
  * differences of the small scales in 4 loads instead of 8. At t = 0 (and after reset())
  * the previous slot is stale or zero: nothing reads dsat before t = 1.
  * With COMPENSATE, work item 0 adds up the prefilter's strip sums into the frame's pixel
- * sum of P, kept per slot of P (bright[0 .. P_SLOTS - 1]) for ternary_states. */
+ * sum of P, kept per slot of P (bright[0 .. P_SLOTS - 1]), and from those the exposure
+ * gain of each channel over its delay (bright[BRIGHT_RATIO + c]), once per frame for all
+ * the rows of ternary_states. */
 #define EMD_Z (ushort16)(0)
 #define SHL1(v) __builtin_shufflevector(v, EMD_Z, 16, 0, 1, 2, 3, 4, 5, 6, 16, 8, 9, 10, 11, 12, 13, 14)
 #define SHL2(v) __builtin_shufflevector(v, EMD_Z, 16, 16, 0, 1, 2, 3, 4, 5, 16, 16, 8, 9, 10, 11, 12, 13)
@@ -27,6 +29,15 @@ __kernel void integral_rows(__global ushort *sat, __global ushort *dsat, int slo
         uint total = 0;
         for (int j = 0; j < NSTRIPS; j++) total += bright[P_SLOTS + p_slot * NSTRIPS + j];
         bright[p_slot] = total;
+        /* the gain over D frames, x256, rounded, as EngineParams.brightness_ratio_q
+         * (pixel sums < 2^32, their products in 64 bits); before D frames exist the
+         * channel has no states, and its ratio is never read */
+        for (int c = 0; c < NCH; c++) {
+            const long then_sum = (long)bright[pos_mod(p_slot - CD[c], P_SLOTS)];
+            long q = 256;
+            if (then_sum > 0) q = (512 * (long)total + then_sum) / (2 * then_sum);
+            bright[BRIGHT_RATIO + c] = (uint)(q < BRIGHTNESS_RATIO_MAX_Q ? q : BRIGHTNESS_RATIO_MAX_Q);
+        }
     }
 #endif
     __global ushort *row = sat + slot * SAT_SIZE + (y + 1) * SSTRIDE + SPAD + 1;

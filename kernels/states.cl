@@ -85,18 +85,8 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
         /* (S_then only for k > 1: the tables go back as far as those channels' delays) */
         __global const ushort *S_then = sat + pos_mod(t - D, SAT_SLOTS) * SAT_SIZE;
         __global const uchar *P_then = P + pos_mod(t - D, P_SLOTS) * P_SIZE;
-        /* brightness compensation: the exposure gain over D frames, x256, rounded, as
-         * EngineParams.brightness_ratio_q (pixel sums < 2^32, their products in 64 bits) */
-        int rq = 256;
-#if COMPENSATE
-        {
-            const long now_sum = (long)bright[t % P_SLOTS], then_sum = (long)bright[pos_mod(t - D, P_SLOTS)];
-            if (then_sum > 0) {
-                const long q = (512 * now_sum + then_sum) / (2 * then_sum);
-                rq = (int)(q < BRIGHTNESS_RATIO_MAX_Q ? q : BRIGHTNESS_RATIO_MAX_Q);
-            }
-        }
-#endif
+        /* brightness compensation: the exposure gain over D frames, x256 (integral_rows) */
+        const int rq = COMPENSATE ? (int)bright[BRIGHT_RATIO + c] : 256;
         const int T256 = 256 * T;
         /* words from i_edge on hold pixels past W - 1 - r; word 0 holds x < r */
         const int i_edge = (W - r) / 32;
