@@ -72,6 +72,34 @@ def _methods(width: int, height: int, frames, *, backend_kwargs=None):
     return methods
 
 
+def alternating_blocks(methods: dict, n_frames: int, *, rounds: int, block: int, warmup: int,
+                       counts: dict | None = None, swap: bool = False, progress=None) -> dict:
+    """Time ``methods`` (``name -> fn(frame index)``) in alternating blocks; returns
+    ``{name: [ms per frame of each round's block]}``.
+
+    Round ``r`` runs every method on the frames ``r · block`` on (modulo ``n_frames``),
+    ``counts[name]`` of them (default ``block``), after ``warmup`` untimed frames of the
+    same method just before them (none for a method with its own count: a slow one);
+    ``swap`` reverses the order of the methods every other round; ``progress(r)`` after
+    each round."""
+    counts = counts or {}
+    samples = {name: [] for name in methods}
+    for r in range(rounds):
+        cursor = r * block
+        order = list(methods.items())
+        for name, fn in (order[::-1] if swap and r % 2 else order):
+            count = counts.get(name, block)
+            for j in range(0 if name in counts else warmup, 0, -1):
+                fn((cursor - j) % n_frames)
+            t0 = time.perf_counter()
+            for j in range(count):
+                fn((cursor + j) % n_frames)
+            samples[name].append((time.perf_counter() - t0) * 1e3 / count)
+        if progress:
+            progress(r)
+    return samples
+
+
 def run_benchmark(*, sizes=SIZES, block: int = 50, rounds: int = 7, numpy_block: int = 3,
                   frames_per_size: int = 40, backend_kwargs=None, progress=None, warmup: int = 2) -> dict:
     """Time every method; returns ``{(w, h): {method: median ms/frame}}``, plus
@@ -87,20 +115,9 @@ def run_benchmark(*, sizes=SIZES, block: int = 50, rounds: int = 7, numpy_block:
         for fn in methods.values():  # warm up: kernel builds, caches, history
             for i in range(4):
                 fn(i)
-        samples = {name: [] for name in methods}
-        cursor = 0
-        for r in range(rounds):
-            for name, fn in methods.items():  # alternate A/B/C... in blocks
-                count = numpy_block if name == "numpy" else block
-                for j in range(0 if name == "numpy" else warmup, 0, -1):
-                    fn((cursor - j) % len(frames))
-                t0 = time.perf_counter()
-                for j in range(count):
-                    fn((cursor + j) % len(frames))
-                samples[name].append((time.perf_counter() - t0) * 1e3 / count)
-            cursor += block
-            if progress:
-                progress(f"{width}x{height}: round {r + 1}/{rounds}")
+        report = (lambda r, size=f"{width}x{height}": progress(f"{size}: round {r + 1}/{rounds}")) if progress else None
+        samples = alternating_blocks(methods, len(frames), rounds=rounds, block=block, warmup=warmup,
+                                     counts={"numpy": numpy_block}, progress=report)
         results[(width, height)] = {name: statistics.median(v) for name, v in samples.items()}
         # DIS / engine within each round (blocks seconds apart share the host's load of
         # the moment), then the median over the rounds

@@ -23,7 +23,6 @@ import argparse
 import importlib.util
 import statistics
 import sys
-import time
 from pathlib import Path
 
 from emdflow.params import MODELS
@@ -38,8 +37,11 @@ def load_checkout(root: Path, name: str = "emdflow_other"):
     package = root / "emdflow" / "__init__.py"
     if not package.is_file() or not (root / "kernels").is_dir():
         raise ToolError(f"{root}: not an emdflow checkout (needs emdflow/__init__.py and kernels/)")
-    if name in sys.modules:
-        return sys.modules[name]
+    loaded = sys.modules.get(name)
+    if loaded is not None:
+        if Path(loaded.__file__).resolve() != package.resolve():
+            raise ToolError(f"module name {name!r} already holds {loaded.__file__}, not {package}")
+        return loaded
     spec = importlib.util.spec_from_file_location(name, package, submodule_search_locations=[str(package.parent)])
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module
@@ -54,7 +56,7 @@ def compare(other, width: int, height: int, model: str = "paper", rounds: int = 
     """Alternating blocks of ``other.FlowEstimator`` and this checkout's on one camera
     flight; returns the per-round ms/frame of both and the median paired ratio."""
     import emdflow
-    from emdflow.bench import _frames
+    from emdflow.bench import _frames, alternating_blocks
 
     frames = _frames(width, height, 40)
     engines = {"other": other.FlowEstimator(width, height, **MODELS[model]),
@@ -62,17 +64,9 @@ def compare(other, width: int, height: int, model: str = "paper", rounds: int = 
     for est in engines.values():
         for frame in frames[:10]:
             est.update(frame)
-    times = {name: [] for name in engines}
-    for r in range(rounds):
-        # (the order alternates: a block right after the other engine's pays for its caches)
-        for name, est in sorted(engines.items(), reverse=bool(r % 2)):
-            first = r * block
-            for j in range(warmup, 0, -1):
-                est.update(frames[(first - j) % len(frames)])
-            t0 = time.perf_counter()
-            for j in range(block):
-                est.update(frames[(first + j) % len(frames)])
-            times[name].append((time.perf_counter() - t0) * 1e3 / block)
+    # (the order swaps every round: a block right after the other engine's pays for its caches)
+    times = alternating_blocks({name: (lambda i, est=est: est.update(frames[i])) for name, est in engines.items()},
+                               len(frames), rounds=rounds, block=block, warmup=warmup, swap=True)
     return {**times, "ratio": statistics.median(o / t for o, t in zip(times["other"], times["this"]))}
 
 
