@@ -274,6 +274,9 @@ def main(argv=None) -> int:
                              "delays 1, 2, 4 at scale 1, scale 15 and the adaptive threshold)")
     parser.add_argument("--delays", default=None,
                         help="temporal delays of the engine instead, e.g. 1,2,4 (fixed threshold)")
+    parser.add_argument("--evidence-row-step", type=int, default=0,
+                        help="rows between the rows that feed the summary's evidence (default: 0, "
+                             "automatic: about 60 rows; 1 = every row, see EngineParams)")
     parser.add_argument("--stages", action="store_true",
                         help="instead: device time per command of a frame (OpenCL profiling events)")
     parser.add_argument("--drift", type=float, default=0.0,
@@ -287,8 +290,12 @@ def main(argv=None) -> int:
     kwargs = dict(MODELS[args.model])
     if args.delays is not None:
         kwargs["delays"] = tuple(int(d) for d in args.delays.split(","))
+    if args.evidence_row_step:
+        kwargs["evidence_row_step"] = args.evidence_row_step
     print(f"# emdflow bench — {_environment()}; model: {args.model}"
-          + (f", delays {kwargs['delays']}" if args.delays is not None else ""), flush=True)
+          + (f", delays {kwargs['delays']}" if args.delays is not None else "")
+          + (f", evidence every {args.evidence_row_step} row(s)" if args.evidence_row_step else ""),
+          flush=True)
     if args.stages:
         for width, height in sizes:
             stages = profile_stages(width, height, backend_kwargs=kwargs, drift=args.drift)

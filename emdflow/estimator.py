@@ -67,6 +67,10 @@ class FlowEstimator:
     gradient_classes : bool, optional
         Bin the summary's evidence also by gradient strength (default False; the extended
         model's summary table needs it, see :class:`emdflow.EngineParams`).
+    evidence_row_step : int, optional
+        Every how many rows the detections feed the summary's evidence; 0 (default):
+        automatic, about 60 rows per frame. Denser evidence gives a more accurate summary
+        direction for more engine time (see :class:`emdflow.EngineParams`).
     device : str or int, optional
         OpenCL device: an index into :func:`emdflow.opencl_devices` or a substring of the
         platform/device name. Default: the ``EMDFLOW_OPENCL_DEVICE`` environment variable,
@@ -105,6 +109,7 @@ class FlowEstimator:
         threshold_max: float = 10.0,
         brightness_compensation: bool = False,
         gradient_classes: bool = False,
+        evidence_row_step: int = 0,
         device=None,
     ):
         for name, value in (("width", width), ("height", height)):
@@ -128,6 +133,7 @@ class FlowEstimator:
             threshold_max=threshold_max,
             brightness_compensation=bool(brightness_compensation),
             gradient_classes=bool(gradient_classes),
+            evidence_row_step=evidence_row_step,
         )
         if backend == "numpy":
             self._engine = ReferenceEngine(self.width, self.height, self.params)

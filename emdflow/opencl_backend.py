@@ -253,7 +253,7 @@ class _Layout:
             "RADIUS": len(w) // 2, "WEIGHTS": join(w),
             "SHARP": int(params.sharp_templates),
             "STATS_OFFSET": self.stats_offset, "N_STATS": self.n_stats,
-            "EVIDENCE_ROW_STEP": params.evidence_row_step(height),
+            "EVIDENCE_ROW_STEP": params.evidence_row_step_for(height),
             # bits of a 32-pixel word in the sampled columns (the step is a power of two)
             "EVIDENCE_COLUMNS": "0x%08Xu" % sum(1 << j for j in range(0, 32, params.evidence_column_step(width))),
             "HIST_COPIES": self.HIST_COPIES, "POS_COPIES": self.POS_COPIES,

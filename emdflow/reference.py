@@ -288,7 +288,7 @@ def summary_statistics(
     * nonzero states per channel;
     * the detection histogram ``hist[axis, code, class · ORIENTATION_BINS + orientation]``
       (``class`` the gradient-strength class, see ``GRADIENT_CLASS_STEPS``): detections on every
-      ``EngineParams.evidence_row_step(H)``-th row and
+      ``params.evidence_row_step_for(H)``-th row and
       ``EngineParams.evidence_column_step(W)``-th column,
       ``axis`` 0 = horizontal / 1 = vertical, ``code = 2c + (1 if negative)``,
       ``orientation`` the bin of the gradient of the receptor image ``R_k`` at the middle
@@ -328,7 +328,7 @@ def summary_statistics(
 
     hist = np.zeros((2, 2 * len(channels), params.histogram_bins), np.int64)
     for axis, code in enumerate((u_code, v_code)):
-        step = params.evidence_row_step(H)
+        step = params.evidence_row_step_for(H)
         xstep = params.evidence_column_step(W)
         ys, xs = np.nonzero(code[0::step, 0::xstep])
         ys = ys * step

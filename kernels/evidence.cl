@@ -52,14 +52,14 @@ __attribute__((always_inline)) inline int orientation_bin(int gx, int gy)
  * so each run of equal bins is flushed with one atomic add. */
 typedef struct { int bin, len; } bin_run;
 
-__attribute__((always_inline)) inline void run_count(__global int *counts, bin_run *run, int bin)
+__attribute__((always_inline)) inline void run_add(__global int *counts, bin_run *run, int bin, int n)
 {
     if (bin != run->bin) {
         if (run->len) ATOMIC_ADD(counts + run->bin, run->len);
         run->bin = bin;
         run->len = 0;
     }
-    run->len++;
+    run->len += n;
 }
 
 __attribute__((always_inline)) inline void run_flush(__global int *counts, bin_run *run)
@@ -69,56 +69,88 @@ __attribute__((always_inline)) inline void run_flush(__global int *counts, bin_r
     run->len = 0;
 }
 
-/* Bin the detections of word i of row y (bit planes b0..b3 = channel index c + 1, bs =
- * sign) of one axis into the position and orientation histograms. The gradient of a
- * scale-1 receptor image is the prefiltered image's own (from the ring of P; the tables
- * keep only the frames the larger scales need). */
 #if NCLASS > 1
 __constant int CSTEP[NCLASS - 1] = { CLASS_STEPS };
 #endif
 
+/* Position bins of the detections m of word i of row y (bs: their signs), by popcount:
+ * a vertical detection's bin is its row's, a horizontal one's its column's (a word spans
+ * at most a few column bins). pos = first bin of the channel's positive code. */
+__attribute__((always_inline)) inline void count_positions(__global int *positions, bin_run *run, int pos,
+                                                           int axis, int y, int i, uint m, uint bs)
+{
+    while (m) {
+        int where, lim = 32;
+        if (axis) {
+            where = y * POS_BINS / H;
+        } else {
+            where = (i * 32 + (int)__builtin_ctz(m)) * POS_BINS / W;
+            /* lanes before the first column of the next bin, ceil((where + 1) W / POS_BINS) */
+            lim = ((where + 1) * W + POS_BINS - 1) / POS_BINS - i * 32;
+        }
+        const uint seg = lim >= 32 ? m : m & ((1u << lim) - 1u);
+        m &= ~seg;
+        const int minus = (int)POPCOUNT(seg & bs), plus = (int)POPCOUNT(seg) - minus;
+        if (plus) run_add(positions, run, pos + where, plus);
+        if (minus) run_add(positions, run, pos + POS_BINS + where, minus);
+    }
+}
+
+/* Bin the detections of word i of row y (bit planes b0..b3 = channel index c + 1, bs =
+ * sign) of one axis into the position and orientation histograms, channel by channel: a
+ * channel's detections share its scale, delay and table, and their positions are counted
+ * by popcount. The gradient of a scale-1 receptor image is the prefiltered image's own
+ * (from the ring of P; the tables keep only the frames the larger scales need). */
 inline void bin_detections(__global int *positions, __global int *hist, __global const ushort *sat,
                            __global const uchar *P, int t, int theta_q,
                            int axis, int y, int i, uint b0, uint b1, uint b2, uint b3, uint bs,
                            bin_run *pos_run, bin_run *hist_run)
 {
-    uint any = (b0 | b1 | b2 | b3) & EVIDENCE_COLUMNS;
-    while (any) {
-        const uint l = (uint)__builtin_ctz(any);
-        any &= any - 1;
-        const int x = i * 32 + (int)l;
-        const int c = (int)(((b0 >> l) & 1u) | (((b1 >> l) & 1u) << 1) | (((b2 >> l) & 1u) << 2)
-                            | (((b3 >> l) & 1u) << 3)) - 1;
-        const int negative = (int)((bs >> l) & 1u);
-        const int where = axis ? y * POS_BINS / H : x * POS_BINS / W;
-        run_count(positions, pos_run, ((axis * 2 * NCH) + 2 * c + negative) * POS_BINS + where);
+    const uint any = (b0 | b1 | b2 | b3) & EVIDENCE_COLUMNS;
+    if (!any) return;
+#pragma unroll
+    for (int c = 0; c < NCH; c++) {
+        const int v = c + 1;
+        uint m = any & ((v & 1) ? b0 : ~b0) & ((v & 2) ? b1 : ~b1) & ((v & 4) ? b2 : ~b2)
+                     & ((v & 8) ? b3 : ~b3);
+        if (!m) continue;
+        count_positions(positions, pos_run, (axis * 2 * NCH + 2 * c) * POS_BINS, axis, y, i, m, bs);
         const int k = CK[c], r = k / 2, D = CD[c];
-        const int step = negative ? -k : k;
-        const int bx = axis ? x : x + step;
-        const int by = axis ? y + step : y;
-        const int xr = bx + 1 < W - 1 - r ? bx + 1 : W - 1 - r;
-        const int xl = bx - 1 > r ? bx - 1 : r;
-        const int yd = by + 1 < H - 1 - r ? by + 1 : H - 1 - r;
-        const int yu = by - 1 > r ? by - 1 : r;
-        int gx, gy;
-        if (k == 1) {
-            /* a 1x1 box is the pixel: the same values the table would give */
-            __global const uchar *R = P + pos_mod(t - D, P_SLOTS) * P_SIZE + PPAD;
-            gx = (int)R[by * PSTRIDE + xr] - (int)R[by * PSTRIDE + xl];
-            gy = (int)R[yd * PSTRIDE + bx] - (int)R[yu * PSTRIDE + bx];
-        } else {
-            __global const ushort *S = sat + pos_mod(t - D, SAT_SLOTS) * SAT_SIZE;
-            gx = box_at(S, xr, by, r) - box_at(S, xl, by, r);
-            gy = box_at(S, bx, yd, r) - box_at(S, bx, yu, r);
-        }
-        if (gx == 0 && gy == 0) continue;
-        int cls = 0;
+        __global const uchar *R = P + pos_mod(t - D, P_SLOTS) * P_SIZE + PPAD;
+        __global const ushort *S = sat + pos_mod(t - D, SAT_SLOTS) * SAT_SIZE;
 #if NCLASS > 1
-        /* gradient-strength class (|g|_1 < 2^17, 8 theta_q k^2 < 2^23: no overflow) */
-        const int strength = 512 * ((gx < 0 ? -gx : gx) + (gy < 0 ? -gy : gy));
         const int unit = 2 * theta_q * k * k;
-        for (int m = 0; m < NCLASS - 1; m++) cls += strength >= CSTEP[m] * unit;
 #endif
-        run_count(hist, hist_run, ((axis * 2 * NCH + 2 * c + negative) * NCLASS + cls) * NBINS + orientation_bin(gx, gy));
+        const int row = (axis * 2 * NCH + 2 * c) * NCLASS * NBINS;
+        while (m) {
+            const uint l = (uint)__builtin_ctz(m);
+            m &= m - 1;
+            const int x = i * 32 + (int)l;
+            const int negative = (int)((bs >> l) & 1u);
+            const int step = negative ? -k : k;
+            const int bx = axis ? x : x + step;
+            const int by = axis ? y + step : y;
+            const int xr = bx + 1 < W - 1 - r ? bx + 1 : W - 1 - r;
+            const int xl = bx - 1 > r ? bx - 1 : r;
+            const int yd = by + 1 < H - 1 - r ? by + 1 : H - 1 - r;
+            const int yu = by - 1 > r ? by - 1 : r;
+            int gx, gy;
+            if (k == 1) {
+                /* a 1x1 box is the pixel: the same values the table would give */
+                gx = (int)R[by * PSTRIDE + xr] - (int)R[by * PSTRIDE + xl];
+                gy = (int)R[yd * PSTRIDE + bx] - (int)R[yu * PSTRIDE + bx];
+            } else {
+                gx = box_at(S, xr, by, r) - box_at(S, xl, by, r);
+                gy = box_at(S, bx, yd, r) - box_at(S, bx, yu, r);
+            }
+            if (gx == 0 && gy == 0) continue;
+            int cls = 0;
+#if NCLASS > 1
+            /* gradient-strength class (|g|_1 < 2^17, 8 theta_q k^2 < 2^23: no overflow) */
+            const int strength = 512 * ((gx < 0 ? -gx : gx) + (gy < 0 ? -gy : gy));
+            for (int s = 0; s < NCLASS - 1; s++) cls += strength >= CSTEP[s] * unit;
+#endif
+            run_add(hist, hist_run, row + (negative * NCLASS + cls) * NBINS + orientation_bin(gx, gy), 1);
+        }
     }
 }

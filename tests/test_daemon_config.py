@@ -148,3 +148,9 @@ def test_engine_model_selects_the_estimator_options(tmp_path):
     assert est.params.histogram_bins == 64
     paper_cheap = load_config(_write(tmp_path, '[engine]\nmodel = "paper"\ngradient_classes = false\n'))
     assert paper_cheap.engine.estimator_options() == {"threshold": 5.0}
+    # denser summary evidence: every row feeds it (0 = automatic, the default)
+    assert "evidence_row_step" not in options
+    dense = load_config(_write(tmp_path, '[engine]\nevidence_row_step = 1\n')).engine.estimator_options()
+    assert emdflow.FlowEstimator(64, 48, backend="numpy", **dense).params.evidence_row_step_for(48) == 1
+    with pytest.raises(ConfigError, match="evidence_row_step"):
+        load_config(_write(tmp_path, '[engine]\nevidence_row_step = -2\n'))

@@ -110,6 +110,8 @@ def test_bad_frames_raise_value_error_naming_expected_and_received(frame, messag
         (dict(delays=(2,)), "delays"),
         (dict(delay_scales=(3,), scales=(1, 5)), "delay_scales"),
         (dict(backend="cuda"), "backend"),
+        (dict(evidence_row_step=-1), "evidence_row_step"),
+        (dict(evidence_row_step=2.5), "evidence_row_step"),
     ],
 )
 def test_bad_parameters_raise_value_error_naming_them(kwargs, message):

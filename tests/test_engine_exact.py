@@ -103,9 +103,11 @@ def test_structured_edges_every_direction_and_polarity(direction, polarity):
         EngineParams(threshold_mode="adaptive"),
         EngineParams(threshold_mode="adaptive", delays=(1, 2, 4), threshold=7.3),
         EngineParams(**MODELS["extended"]),
+        EngineParams(evidence_row_step=1),
+        EngineParams(**MODELS["extended"], evidence_row_step=3),
     ],
     ids=["sharp", "no-prefilter", "w7-scales", "delays124", "delays13", "adaptive", "adaptive-delays",
-         "extended"],
+         "extended", "evidence-every-row", "extended-evidence-step3"],
 )
 def test_parameter_variants(params):
     width, height = 89, 67

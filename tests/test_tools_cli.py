@@ -388,6 +388,25 @@ def test_engine_ab_times_another_checkout_in_the_same_process(capsys):
     assert "not an emdflow checkout" in capsys.readouterr().err
 
 
+def test_engine_ab_other_option_times_an_option_against_the_default(capsys):
+    """``--other-option KEY=VALUE`` gives the other engine one estimator keyword: the same
+    checkout then times what an option costs; a malformed or invalid option is an error."""
+    from pathlib import Path
+
+    from emdflow.tools import engine_ab
+
+    pytest.importorskip("pyopencl")
+    root = str(Path(__file__).resolve().parents[1])
+    assert engine_ab.main([root, "--size", "64x48", "--rounds", "2", "--block", "3",
+                           "--other-option", "evidence_row_step=1"]) == 0
+    out = capsys.readouterr().out
+    assert "other evidence_row_step=1" in out and "per round" in out
+    with pytest.raises(SystemExit):
+        engine_ab.main([root, "--other-option", "evidence_row_step"])
+    assert engine_ab.main([root, "--size", "64x48", "--other-option", "evidence_row_step=-3"]) == 2
+    assert "evidence_row_step" in capsys.readouterr().err
+
+
 def test_bench_model_option_runs_the_daemons_model(monkeypatch, capsys):
     """``--model extended`` benchmarks the daemon's default model (delays and adaptive
     threshold from ``emdflow.params.MODELS``); ``--delays`` overrides the delays alone."""
@@ -405,6 +424,8 @@ def test_bench_model_option_runs_the_daemons_model(monkeypatch, capsys):
     assert seen[-1] == MODELS["extended"] and seen[-1]["threshold_mode"] == "adaptive"
     assert bench.main(["--stages", "--sizes", "48x40", "--delays", "1,3"]) == 0
     assert seen[-1] == {"delays": (1, 3)}
+    assert bench.main(["--stages", "--sizes", "48x40", "--evidence-row-step", "1"]) == 0
+    assert seen[-1] == {"evidence_row_step": 1} and "evidence every 1 row" in capsys.readouterr().out
 
 
 def test_model_option_of_the_tools_selects_a_named_model(backend):

@@ -537,16 +537,18 @@ def _directions(offset, random_set, speeds=EVALUATION_SPEEDS):
 
 def render_evaluation(offset: float = 0.0, random_set: bool = False, frames: int = 6,
                       backend: str = "opencl", width=320, height=240, model: str = "paper",
-                      contrast: float = 1.0, drift: float = 0.0):
+                      contrast: float = 1.0, drift: float = 0.0, evidence_row_step: int = 0):
     """Flights over the evaluation textures: the model's speeds (9 for the paper's model,
     10 from 0.25 px/frame for the extended one) × 4 textures × 8 directions (multiples of
     45° plus ``offset`` radians, or random directions), noise σ = 2, scene ``contrast``
     and an exposure ramp of ``drift`` (relative) across each whole flight, ``frames``
-    ready frames each. Returns the histograms, statistics and true flows."""
+    ready frames each; ``evidence_row_step`` as in :class:`emdflow.EngineParams` (0:
+    automatic). Returns the histograms, statistics and true flows."""
     from emdflow import FlowEstimator
     from emdflow.synthetic import CameraFlight, load_texture
 
-    est = FlowEstimator(width, height, backend=backend, **MODELS[model])
+    est = FlowEstimator(width, height, backend=backend, **MODELS[model],
+                        evidence_row_step=evidence_row_step)
     warm = est.params.history_frames
     speeds = MODEL_EVALUATION_SPEEDS[model]
     directions = _directions(offset, random_set, speeds)
@@ -632,7 +634,7 @@ def score(data, options=None, out=print):
 
 def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: str = "opencl",
              save: str | None = None, data: str | None = None, model: str = "paper",
-             contrast: float = 1.0, drift: float = 0.0, options=None):
+             contrast: float = 1.0, drift: float = 0.0, options=None, evidence_row_step: int = 0):
     """Render (or load with ``data``) the evaluation flights and :func:`score` them."""
     if data:
         with np.load(data) as z:
@@ -640,13 +642,16 @@ def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: 
         label = data
     else:
         flights = render_evaluation(offset, random_set, frames, backend, model=model,
-                                    contrast=contrast, drift=drift)
+                                    contrast=contrast, drift=drift,
+                                    evidence_row_step=evidence_row_step)
         label = "random directions" if random_set else f"offset {offset} rad"
         label += f", {model} model"
         if contrast != 1.0:
             label += f", contrast x{contrast:g}"
         if drift:
             label += f", exposure drift {drift:+g}"
+        if evidence_row_step:
+            label += f", evidence every {evidence_row_step} row(s)"
         if save:
             np.savez_compressed(save, **flights)
     print(f"{label}: {len(flights['flow'])} frames")
@@ -693,6 +698,9 @@ def main(argv=None):
                    help="exposure drift across each flight (e.g. 0.2 for +20 %%)")
     e.add_argument("--ioc", action="store_true",
                    help="score the IoC fit alone (SummaryOptions(likelihood=False))")
+    e.add_argument("--evidence-row-step", type=int, default=0,
+                   help="rows between the rows that feed the summary's evidence (EngineParams; "
+                        "default 0: automatic, every 4th row at 240 px)")
     a = ap.parse_args(argv)
     if a.cmd == "collect":
         bad = set(a.textures.split(",")) & set(EVALUATION_TEXTURES)
@@ -714,7 +722,7 @@ def main(argv=None):
 
             options = SummaryOptions(likelihood=False)
         evaluate(a.offset, a.random, a.frames, a.backend, a.save, a.data, a.model, a.contrast,
-                 a.drift, options)
+                 a.drift, options, a.evidence_row_step)
 
 
 if __name__ == "__main__":

@@ -13,6 +13,11 @@ checkout it gave 0.99-1.07 here: smaller differences are noise::
     python -m emdflow.tools.engine_ab /tmp/before                       # paper, 640x480
     python -m emdflow.tools.engine_ab /tmp/before --model extended --size 320x240
 
+``--other-option KEY=VALUE`` passes an estimator keyword to the other engine only, so the
+same checkout times the cost of an option::
+
+    python -m emdflow.tools.engine_ab . --other-option evidence_row_step=1 --size 320x240
+
 The other checkout must have the source layout (``emdflow/`` and ``kernels/`` side by
 side) and the same public API (``FlowEstimator``, ``emdflow.params.MODELS``).
 """
@@ -20,6 +25,7 @@ side) and the same public API (``FlowEstimator``, ``emdflow.params.MODELS``).
 from __future__ import annotations
 
 import argparse
+import ast
 import importlib.util
 import statistics
 import sys
@@ -52,14 +58,15 @@ def load_checkout(root: Path, name: str = "emdflow_other"):
 
 
 def compare(other, width: int, height: int, model: str = "paper", rounds: int = 12, block: int = 50,
-            warmup: int = 2) -> dict:
-    """Alternating blocks of ``other.FlowEstimator`` and this checkout's on one camera
-    flight; returns the per-round ms/frame of both and the median paired ratio."""
+            warmup: int = 2, other_options: dict | None = None) -> dict:
+    """Alternating blocks of ``other.FlowEstimator`` (with ``other_options`` on top of the
+    model's) and this checkout's on one camera flight; returns the per-round ms/frame of
+    both and the median paired ratio."""
     import emdflow
     from emdflow.bench import _frames, alternating_blocks
 
     frames = _frames(width, height, 40)
-    engines = {"other": other.FlowEstimator(width, height, **MODELS[model]),
+    engines = {"other": other.FlowEstimator(width, height, **{**MODELS[model], **(other_options or {})}),
                "this": emdflow.FlowEstimator(width, height, **MODELS[model])}
     for est in engines.values():
         for frame in frames[:10]:
@@ -77,18 +84,31 @@ def main(argv=None) -> int:
     ap.add_argument("--model", default="paper", choices=tuple(MODELS))
     ap.add_argument("--rounds", type=int, default=12)
     ap.add_argument("--block", type=int, default=50)
+    ap.add_argument("--other-option", action="append", default=[], metavar="KEY=VALUE",
+                    help="estimator keyword for the other engine only (repeatable), e.g. "
+                         "evidence_row_step=1")
     a = ap.parse_args(argv)
+    options = {}
+    for item in a.other_option:
+        key, sep, text = item.partition("=")
+        if not sep or not key.isidentifier():
+            ap.error(f"--other-option {item!r}: expected KEY=VALUE, e.g. evidence_row_step=1")
+        try:
+            options[key] = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            options[key] = text
     try:
         width, height = (int(v) for v in a.size.lower().split("x"))
     except ValueError:
         ap.error(f"--size {a.size!r}: expected WxH, e.g. 640x480")
     try:
         other = load_checkout(a.checkout.resolve())
-        r = compare(other, width, height, a.model, a.rounds, a.block)
-    except ToolError as exc:
+        r = compare(other, width, height, a.model, a.rounds, a.block, other_options=options)
+    except (ToolError, TypeError, ValueError) as exc:
         print(f"engine_ab: {exc}", file=sys.stderr)
         return 2
-    print(f"{a.model} {width}x{height}: other {statistics.median(r['other']):.3f} ms, "
+    label = "".join(f" {k}={v!r}" for k, v in options.items())
+    print(f"{a.model} {width}x{height}: other{label} {statistics.median(r['other']):.3f} ms, "
           f"this {statistics.median(r['this']):.3f} ms per frame; other / this per round "
           f"(median of {a.rounds}): {r['ratio']:.3f}")
     print("  rounds other:", " ".join(f"{x:.2f}" for x in r["other"]))
