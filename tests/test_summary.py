@@ -438,3 +438,19 @@ def test_evaluation_flights_take_the_evidence_density(monkeypatch):
     dense = cs.render_evaluation(0.3, frames=1, width=64, height=48, evidence_row_step=1)
     assert np.array_equal(auto["flow"], dense["flow"])
     assert dense["hist"].sum() > 1.5 * auto["hist"].sum()
+
+
+def test_calibration_flights_take_the_evidence_density(tmp_path):
+    """``calibrate_summary collect --evidence-row-step N`` samples the stored histograms that
+    way (same seed, same flights: more evidence with every row)."""
+    from emdflow.tools import calibrate_summary as cs
+
+    counts = []
+    for step in (0, 1):
+        out = tmp_path / f"c{step}.npz"
+        cs.main(["collect", "--flights", "2", "--frames", "6", "--seed", "3", "--out", str(out),
+                 "--evidence-row-step", str(step)])
+        with np.load(out) as d:
+            counts.append((d["flow"].copy(), int(d["hist"].sum())))
+    assert np.array_equal(counts[0][0], counts[1][0])
+    assert counts[1][1] > 2 * counts[0][1]

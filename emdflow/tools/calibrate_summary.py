@@ -147,7 +147,7 @@ def calibration_path(model: str) -> Path:
 
 def collect(flights: int, out: str, frames: int = 7, seed: int = 20240601, width=320, height=240,
             textures=CALIBRATION_TEXTURES, backend: str = "opencl", scale_range=(1.0, 1.0),
-            model: str = "paper", contrast_range=None):
+            model: str = "paper", contrast_range=None, evidence_row_step: int = 0):
     """Render ``flights`` random flights; store every ready frame's histogram and truth.
 
     Each flight draws a direction, a speed (log-uniform over the model's range, 0.4..18
@@ -155,7 +155,9 @@ def collect(flights: int, out: str, frames: int = 7, seed: int = 20240601, width
     ``scale_range``: texture px per image px, so the photographs are seen finer or
     coarser) and a start that keeps the whole flight inside the photograph (no mirrored
     borders). For the extended model the contrast is log-uniform 0.2..1 and 60 % of the
-    flights carry an exposure drift (uniform in ±30 % across the flight). ``frames``
+    flights carry an exposure drift (uniform in ±30 % across the flight);
+    ``evidence_row_step`` samples the histograms as in :class:`emdflow.EngineParams`
+    (0: automatic, as the committed tables were made). ``frames``
     counts the *ready* frames per flight (the model's history comes on top: 3 frames for
     the paper's model, whose flights therefore have ``frames`` frames in all as before,
     12 for the extended one)."""
@@ -163,7 +165,8 @@ def collect(flights: int, out: str, frames: int = 7, seed: int = 20240601, width
     from emdflow.synthetic import CameraFlight, load_texture
 
     rng = np.random.default_rng(seed)
-    est = FlowEstimator(width, height, backend=backend, **MODELS[model])
+    est = FlowEstimator(width, height, backend=backend, **MODELS[model],
+                        evidence_row_step=evidence_row_step)
     ranges = dict(COLLECT_RANGES[model])
     if contrast_range is not None:
         ranges["contrast"] = tuple(contrast_range)
@@ -675,6 +678,9 @@ def main(argv=None):
                    help="detector model (channel set and threshold mode) to calibrate")
     c.add_argument("--contrast-range", default=None,
                    help="scene contrast range lo,hi (default: the model's, see COLLECT_RANGES)")
+    c.add_argument("--evidence-row-step", type=int, default=0,
+                   help="rows between the rows that feed the histograms (EngineParams; default "
+                        "0: automatic)")
     f = sub.add_parser("fit")
     f.add_argument("data", nargs="+")
     f.add_argument("--write", action="store_true",
@@ -710,7 +716,8 @@ def main(argv=None):
                 backend=a.backend,
                 scale_range=tuple(float(x) for x in a.scale_range.split(",")), model=a.model,
                 contrast_range=(tuple(float(x) for x in a.contrast_range.split(","))
-                                if a.contrast_range else None))
+                                if a.contrast_range else None),
+                evidence_row_step=a.evidence_row_step)
     elif a.cmd == "fit":
         fit_main(a.data, a.write, a.model)
     elif a.cmd == "misfit":
