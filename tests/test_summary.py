@@ -440,6 +440,25 @@ def test_evaluation_flights_take_the_evidence_density(monkeypatch):
     assert dense["hist"].sum() > 1.5 * auto["hist"].sum()
 
 
+def test_evaluation_flights_take_the_frame_size(monkeypatch, tmp_path, capsys):
+    """``calibrate_summary evaluate --size WxH`` renders the flights at that size (the
+    stored histograms say so, and the frames are scored); a malformed size is refused with
+    a message that names the option."""
+    from emdflow.tools import calibrate_summary as cs
+
+    monkeypatch.setitem(cs.MODEL_EVALUATION_SPEEDS, "paper", (3,))
+    out = tmp_path / "flights.npz"
+    cs.main(["evaluate", "--size", "96x64", "--frames", "1", "--save", str(out)])
+    with np.load(out) as d:
+        assert d["shape"].tolist() == [64, 96]
+        assert len(d["flow"]) == 8 * len(cs.EVALUATION_TEXTURES)
+        assert d["hist"].sum() > 0
+    assert "96x64" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        cs.main(["evaluate", "--size", "96by64"])
+    assert "--size '96by64'" in capsys.readouterr().err
+
+
 def test_calibration_flights_take_the_evidence_density(tmp_path):
     """``calibrate_summary collect --evidence-row-step N`` samples the stored histograms that
     way (same seed, same flights: more evidence with every row)."""

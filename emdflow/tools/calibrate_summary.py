@@ -637,17 +637,21 @@ def score(data, options=None, out=print):
 
 def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: str = "opencl",
              save: str | None = None, data: str | None = None, model: str = "paper",
-             contrast: float = 1.0, drift: float = 0.0, options=None, evidence_row_step: int = 0):
-    """Render (or load with ``data``) the evaluation flights and :func:`score` them."""
+             contrast: float = 1.0, drift: float = 0.0, options=None, evidence_row_step: int = 0,
+             width: int = 320, height: int = 240):
+    """Render (or load with ``data``) the evaluation flights (``width`` × ``height`` frames)
+    and :func:`score` them."""
     if data:
         with np.load(data) as z:
             flights = {k: z[k] for k in z.files}
         label = data
     else:
-        flights = render_evaluation(offset, random_set, frames, backend, model=model,
+        flights = render_evaluation(offset, random_set, frames, backend, width, height, model=model,
                                     contrast=contrast, drift=drift,
                                     evidence_row_step=evidence_row_step)
         label = "random directions" if random_set else f"offset {offset} rad"
+        if (width, height) != (320, 240):
+            label += f", {width}x{height}"
         label += f", {model} model"
         if contrast != 1.0:
             label += f", contrast x{contrast:g}"
@@ -707,6 +711,9 @@ def main(argv=None):
     e.add_argument("--evidence-row-step", type=int, default=0,
                    help="rows between the rows that feed the summary's evidence (EngineParams; "
                         "default 0: automatic, every 4th row at 240 px)")
+    e.add_argument("--size", default="320x240",
+                   help="frame size WxH of the flights (default 320x240, the size the tables "
+                        "were calibrated at)")
     a = ap.parse_args(argv)
     if a.cmd == "collect":
         bad = set(a.textures.split(",")) & set(EVALUATION_TEXTURES)
@@ -728,8 +735,12 @@ def main(argv=None):
             from emdflow.summary import SummaryOptions
 
             options = SummaryOptions(likelihood=False)
+        try:
+            width, height = (int(x) for x in a.size.lower().split("x"))
+        except ValueError:
+            ap.error(f"--size {a.size!r}: expected WxH, e.g. 640x480")
         evaluate(a.offset, a.random, a.frames, a.backend, a.save, a.data, a.model, a.contrast,
-                 a.drift, options, a.evidence_row_step)
+                 a.drift, options, a.evidence_row_step, width, height)
 
 
 if __name__ == "__main__":
