@@ -451,12 +451,36 @@ def test_evaluation_flights_take_the_frame_size(monkeypatch, tmp_path, capsys):
     cs.main(["evaluate", "--size", "96x64", "--frames", "1", "--save", str(out)])
     with np.load(out) as d:
         assert d["shape"].tolist() == [64, 96]
+        assert int(d["flight_frames"]) == 1
         assert len(d["flow"]) == 8 * len(cs.EVALUATION_TEXTURES)
         assert d["hist"].sum() > 0
     assert "96x64" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         cs.main(["evaluate", "--size", "96by64"])
     assert "--size '96by64'" in capsys.readouterr().err
+
+
+def test_evaluation_splits_the_error_into_flight_bias_and_frame_spread():
+    """``score`` says how much of the error a flight keeps in all its frames (its scene and
+    direction) and how much changes from frame to frame: two flights read 3° (and 10 %)
+    off on average, ±1° (and ±2 %) frame to frame; a flight with a quality-0 frame is left
+    out."""
+    from emdflow.summary import FlowSummary
+    from emdflow.tools.calibrate_summary import _print_flight_bias
+
+    sums, flows = [], []
+    for flight, (angle, bias) in enumerate([(0.3, 3.0), (2.0, -3.0), (4.0, 20.0)]):
+        for frame in range(4):
+            wobble = 1.0 if frame % 2 else -1.0
+            a = angle + math.radians(bias + wobble)
+            speed = 2.0 * math.exp(0.10 * np.sign(bias) + 0.02 * wobble)
+            blind = flight == 2 and frame == 3
+            sums.append(FlowSummary() if blind else FlowSummary(speed * math.cos(a), speed * math.sin(a), 200))
+            flows.append((2.0 * math.cos(angle), 2.0 * math.sin(angle)))
+    lines = []
+    _print_flight_bias(sums, np.array(flows), 4, lines.append)
+    assert len(lines) == 1 and "(2 flights of 4 frames)" in lines[0]
+    assert "direction 3.00 / 1.00 deg, speed 10.0 / 2.0 %" in lines[0]
 
 
 def test_calibration_flights_take_the_evidence_density(tmp_path):

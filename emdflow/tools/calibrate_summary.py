@@ -24,7 +24,8 @@ Steps (all deterministic; the committed table is exactly what these commands wri
     python -m emdflow.tools.calibrate_summary fit /tmp/emdflow_calib.npz \
         /tmp/emdflow_calib2.npz --write
     # 3. evaluate summarize() on the EVALUATION textures (per-speed table, coverage,
-    #    quality bands and how well quality ranks the frames by error, time per call);
+    #    quality bands and how well quality ranks the frames by error, how much of the
+    #    error a flight keeps in all its frames, time per call);
     #    1728 frames per set, ~20 s each
     python -m emdflow.tools.calibrate_summary evaluate --offset 0
     python -m emdflow.tools.calibrate_summary evaluate --offset 0.3
@@ -580,7 +581,8 @@ def render_evaluation(offset: float = 0.0, random_set: bool = False, frames: int
                         flows.append((fu, fv))
             cell += 1
     return dict(hist=np.array(hists), stats=np.array(stats), flow=np.array(flows),
-                shape=np.array([height, width]), frame_index=warm + 1, model=np.array(model))
+                shape=np.array([height, width]), frame_index=warm + 1, model=np.array(model),
+                flight_frames=np.array(frames))
 
 
 def score(data, options=None, out=print):
@@ -625,6 +627,8 @@ def score(data, options=None, out=print):
         if m.any():
             out(f"    {lo:3d}-{hi - 1:3d}   | {int(m.sum()):6d} | {np.median(err[m, 0]) * 100:5.1f} % "
                 f"| {np.percentile(err[m, 0], 90) * 100:5.1f} %")
+    if "flight_frames" in data:
+        _print_flight_bias(sums, flows, int(data["flight_frames"]), out)
     rated = qual > 0
     if rated.sum() > 2:
         from scipy.stats import spearmanr
@@ -633,6 +637,31 @@ def score(data, options=None, out=print):
         out(f"  rank correlation of quality with -error (Spearman, quality > 0): "
             f"{spearmanr(qual[rated], -err[rated, 0])[0]:.2f}")
     return err, qual
+
+
+def _print_flight_bias(sums, flows, per_flight: int, out=print):
+    """How much of the error is the flight's (the scene's and direction's: the same in all
+    of its frames) and how much the frame's: the median over flights of the absolute mean
+    signed error, and of the spread (standard deviation) of the signed error within each
+    flight, for the direction (degrees) and the speed (log of measured / true speed, as
+    %). Flights with a quality-0 frame are left out."""
+    n = len(sums) // per_flight
+    if per_flight < 2 or n == 0 or n * per_flight != len(sums):
+        return
+    quality = np.array([s.quality for s in sums]).reshape(n, per_flight)
+    est = np.array([(s.flow_x, s.flow_y) for s in sums])
+    direction = np.degrees(np.arctan2(est[:, 1], est[:, 0]) - np.arctan2(flows[:, 1], flows[:, 0]))
+    direction = ((direction + 180.0) % 360.0 - 180.0).reshape(n, per_flight)
+    speed = np.log(np.maximum(np.hypot(est[:, 0], est[:, 1]), 1e-9)
+                   / np.hypot(flows[:, 0], flows[:, 1])).reshape(n, per_flight)
+    ok = (quality > 0).all(axis=1)
+    if not ok.any():
+        return
+    out(f"  per flight ({int(ok.sum())} flights of {per_flight} frames): median |flight mean| "
+        f"/ median spread within a flight: direction "
+        f"{np.median(np.abs(direction[ok].mean(axis=1))):.2f} / {np.median(direction[ok].std(axis=1)):.2f} deg, "
+        f"speed {np.median(np.abs(speed[ok].mean(axis=1))) * 100:.1f} / "
+        f"{np.median(speed[ok].std(axis=1)) * 100:.1f} %")
 
 
 def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: str = "opencl",
