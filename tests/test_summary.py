@@ -455,9 +455,10 @@ def test_evaluation_flights_take_the_frame_size(monkeypatch, tmp_path, capsys):
         assert len(d["flow"]) == 8 * len(cs.EVALUATION_TEXTURES)
         assert d["hist"].sum() > 0
     assert "96x64" in capsys.readouterr().out
-    with pytest.raises(SystemExit):
-        cs.main(["evaluate", "--size", "96by64"])
-    assert "--size '96by64'" in capsys.readouterr().err
+    for bad in ("96by64", "0x64"):
+        with pytest.raises(SystemExit):
+            cs.main(["evaluate", "--size", bad])
+        assert f"--size '{bad}'" in capsys.readouterr().err
 
 
 def test_evaluation_splits_the_error_into_flight_bias_and_frame_spread():

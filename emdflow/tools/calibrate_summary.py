@@ -767,7 +767,9 @@ def main(argv=None):
         try:
             width, height = (int(x) for x in a.size.lower().split("x"))
         except ValueError:
-            ap.error(f"--size {a.size!r}: expected WxH, e.g. 640x480")
+            width = height = 0
+        if min(width, height) < 8:
+            ap.error(f"--size {a.size!r}: expected WxH of at least 8x8 px, e.g. 640x480")
         evaluate(a.offset, a.random, a.frames, a.backend, a.save, a.data, a.model, a.contrast,
                  a.drift, options, a.evidence_row_step, width, height)
 
