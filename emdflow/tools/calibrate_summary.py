@@ -588,7 +588,8 @@ def render_evaluation(offset: float = 0.0, random_set: bool = False, frames: int
 def score(data, options=None, out=print):
     """summarize() every stored frame; prints median relative / direction error per speed
     (quality-0 frames count as 100 % / 180°), coverage (share of frames with quality > 0),
-    a quality-band table and the mean time per :func:`summarize` call. Returns
+    a quality-band table, how much of the error each flight keeps in all its frames (when
+    the data store ``flight_frames``) and the mean time per :func:`summarize` call. Returns
     ``(errors (n, 2), quality (n,))``."""
     from emdflow import summarize
     from emdflow.field import FlowField
