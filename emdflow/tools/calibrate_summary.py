@@ -765,12 +765,12 @@ def main(argv=None):
             from emdflow.summary import SummaryOptions
 
             options = SummaryOptions(likelihood=False)
+        from emdflow.tools.video_io import parse_size
+
         try:
-            width, height = (int(x) for x in a.size.lower().split("x"))
-        except ValueError:
-            width = height = 0
-        if min(width, height) < 8:
-            ap.error(f"--size {a.size!r}: expected WxH of at least 8x8 px, e.g. 640x480")
+            width, height = parse_size(a.size)
+        except ValueError as exc:
+            ap.error(f"--{exc}")  # "--size '...': expected WIDTHxHEIGHT, ..."
         evaluate(a.offset, a.random, a.frames, a.backend, a.save, a.data, a.model, a.contrast,
                  a.drift, options, a.evidence_row_step, width, height)
 

@@ -98,10 +98,12 @@ def main(argv=None) -> int:
             options[key] = ast.literal_eval(text)
         except (ValueError, SyntaxError):
             options[key] = text
+    from emdflow.tools.video_io import parse_size
+
     try:
-        width, height = (int(v) for v in a.size.lower().split("x"))
-    except ValueError:
-        ap.error(f"--size {a.size!r}: expected WxH, e.g. 640x480")
+        width, height = parse_size(a.size)
+    except ValueError as exc:
+        ap.error(f"--{exc}")
     try:
         other = load_checkout(a.checkout.resolve())
         r = compare(other, width, height, a.model, a.rounds, a.block, other_options=options)
