@@ -461,6 +461,34 @@ def test_evaluation_flights_take_the_frame_size(monkeypatch, tmp_path, capsys):
         assert f"--size '{bad}'" in capsys.readouterr().err
 
 
+def test_evaluation_flights_take_the_sensor_noise(monkeypatch, capsys):
+    """``calibrate_summary evaluate --noise SIGMA`` renders the flights with that sensor
+    noise: over a blank scene (contrast 0), where only noise changes the receptors, σ = 8
+    gray levels lights up the extended model's states (threshold at its floor) and σ = 0.5
+    hardly does; the label names it, and a negative or non-finite σ is refused with a
+    message that names the option."""
+    from emdflow.reference import STAT_FIRST_CHANGED
+    from emdflow.tools import calibrate_summary as cs
+
+    monkeypatch.setitem(cs.MODEL_EVALUATION_SPEEDS, "extended", (1,))
+    monkeypatch.setitem(cs.MODEL_EVALUATION_SPEEDS, "paper", (3,))
+    blank = dict(frames=1, width=64, height=48, model="extended", contrast=0.0)
+    quiet = cs.render_evaluation(0.3, noise=0.5, **blank)
+    noisy = cs.render_evaluation(0.3, noise=8.0, **blank)
+    assert np.array_equal(quiet["flow"], noisy["flow"])
+    changed = lambda d: int(d["stats"][:, STAT_FIRST_CHANGED:].sum())  # noqa: E731
+    pixels = 64 * 48 * len(noisy["flow"])
+    assert changed(noisy) > 0.05 * pixels > 20 * changed(quiet)
+    cs.main(["evaluate", "--size", "64x48", "--frames", "1", "--noise", "4"])
+    assert "noise sigma 4" in capsys.readouterr().out
+    for bad in ("-1", "nan"):
+        with pytest.raises(SystemExit):
+            cs.main(["evaluate", "--noise", bad])
+        assert "--noise" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="noise"):
+        cs.render_evaluation(0.3, frames=1, width=64, height=48, noise=-2.0)
+
+
 def test_evaluation_splits_the_error_into_flight_bias_and_frame_spread():
     """``score`` says how much of the error a flight keeps in all its frames (its scene and
     direction) and how much changes from frame to frame: two flights read 3° (and 10 %)

@@ -80,6 +80,8 @@ frames of history before the ``--frames`` recorded ones.)
 ``--backend numpy`` gives the same histograms (the backends agree bit for bit), ~30x
 slower. ``evaluate --save F.npz`` stores the rendered histograms and ``evaluate --data
 F.npz`` scores them again without rendering (for tuning :class:`SummaryOptions`).
+``evaluate --size WxH`` flies at another frame size and ``evaluate --noise SIGMA`` with
+another sensor noise (σ gray levels; 2 unless told, the calibration flights draw 1–3).
 
 Calibration uses the photographs ``moon, coffee, astronaut, rocket`` with random
 direction, speed (log-uniform 0.4..18 px/frame), start position, noise and contrast; every
@@ -541,13 +543,18 @@ def _directions(offset, random_set, speeds=EVALUATION_SPEEDS):
 
 def render_evaluation(offset: float = 0.0, random_set: bool = False, frames: int = 6,
                       backend: str = "opencl", width=320, height=240, model: str = "paper",
-                      contrast: float = 1.0, drift: float = 0.0, evidence_row_step: int = 0):
+                      contrast: float = 1.0, drift: float = 0.0, evidence_row_step: int = 0,
+                      noise: float = 2.0):
     """Flights over the evaluation textures: the model's speeds (9 for the paper's model,
     10 from 0.25 px/frame for the extended one) × 4 textures × 8 directions (multiples of
-    45° plus ``offset`` radians, or random directions), noise σ = 2, scene ``contrast``
+    45° plus ``offset`` radians, or random directions), sensor noise σ = ``noise`` gray
+    levels (2 unless told; the calibration flights draw it from 1–3), scene ``contrast``
     and an exposure ramp of ``drift`` (relative) across each whole flight, ``frames``
     ready frames each; ``evidence_row_step`` as in :class:`emdflow.EngineParams` (0:
     automatic). Returns the histograms, statistics and true flows."""
+    if not (math.isfinite(noise) and noise >= 0):
+        raise ValueError(f"noise={noise!r}: the sensor noise must be a standard deviation >= 0 "
+                         "(gray levels)")
     from emdflow import FlowEstimator
     from emdflow.synthetic import CameraFlight, load_texture
 
@@ -570,7 +577,7 @@ def render_evaluation(offset: float = 0.0, random_set: bool = False, frames: int
                 mid = (warm - 3 + frames + warm - 1) / 2
                 start = (size[1] / 2 + fu * mid, size[0] / 2 + fv * mid)
                 flight = CameraFlight(texture, width=width, height=height, flow=(fu, fv),
-                                      noise_sigma=2.0, seed=a, start=start, contrast=contrast,
+                                      noise_sigma=noise, seed=a, start=start, contrast=contrast,
                                       exposure_drift=drift, drift_frames=frames + warm)
                 est.reset()
                 for t in range(frames + warm):
@@ -668,7 +675,7 @@ def _print_flight_bias(sums, flows, per_flight: int, out=print):
 def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: str = "opencl",
              save: str | None = None, data: str | None = None, model: str = "paper",
              contrast: float = 1.0, drift: float = 0.0, options=None, evidence_row_step: int = 0,
-             width: int = 320, height: int = 240):
+             width: int = 320, height: int = 240, noise: float = 2.0):
     """Render (or load with ``data``) the evaluation flights (``width`` × ``height`` frames)
     and :func:`score` them."""
     if data:
@@ -678,7 +685,7 @@ def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: 
     else:
         flights = render_evaluation(offset, random_set, frames, backend, width, height, model=model,
                                     contrast=contrast, drift=drift,
-                                    evidence_row_step=evidence_row_step)
+                                    evidence_row_step=evidence_row_step, noise=noise)
         label = "random directions" if random_set else f"offset {offset} rad"
         if (width, height) != (320, 240):
             label += f", {width}x{height}"
@@ -687,6 +694,8 @@ def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: 
             label += f", contrast x{contrast:g}"
         if drift:
             label += f", exposure drift {drift:+g}"
+        if noise != 2.0:
+            label += f", noise sigma {noise:g}"
         if evidence_row_step:
             label += f", evidence every {evidence_row_step} row(s)"
         if save:
@@ -744,6 +753,9 @@ def main(argv=None):
     e.add_argument("--size", default="320x240",
                    help="frame size WxH of the flights (default 320x240, the size the tables "
                         "were calibrated at)")
+    e.add_argument("--noise", type=float, default=2.0,
+                   help="sensor noise of the flights, standard deviation in gray levels (default "
+                        "2; the calibration flights draw it from 1-3)")
     a = ap.parse_args(argv)
     if a.cmd == "collect":
         bad = set(a.textures.split(",")) & set(EVALUATION_TEXTURES)
@@ -771,8 +783,11 @@ def main(argv=None):
             width, height = parse_size(a.size)
         except ValueError as exc:
             ap.error(f"--{exc}")  # "--size '...': expected WIDTHxHEIGHT, ..."
+        if not (math.isfinite(a.noise) and a.noise >= 0):
+            ap.error(f"--noise {a.noise:g}: the sensor noise must be a standard deviation >= 0 "
+                     "(gray levels)")
         evaluate(a.offset, a.random, a.frames, a.backend, a.save, a.data, a.model, a.contrast,
-                 a.drift, options, a.evidence_row_step, width, height)
+                 a.drift, options, a.evidence_row_step, width, height, a.noise)
 
 
 if __name__ == "__main__":
