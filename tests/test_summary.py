@@ -472,7 +472,7 @@ def test_evaluation_flights_take_the_sensor_noise(monkeypatch, capsys):
 
     monkeypatch.setitem(cs.MODEL_EVALUATION_SPEEDS, "extended", (1,))
     monkeypatch.setitem(cs.MODEL_EVALUATION_SPEEDS, "paper", (3,))
-    blank = dict(frames=1, width=64, height=48, model="extended", contrast=0.0)
+    blank = {"frames": 1, "width": 64, "height": 48, "model": "extended", "contrast": 0.0}
     quiet = cs.render_evaluation(0.3, noise=0.5, **blank)
     noisy = cs.render_evaluation(0.3, noise=8.0, **blank)
     assert np.array_equal(quiet["flow"], noisy["flow"])
