@@ -512,6 +512,39 @@ def test_evaluation_splits_the_error_into_flight_bias_and_frame_spread():
     assert "direction 3.00 / 1.00 deg, speed 10.0 / 2.0 %" in lines[0]
 
 
+def test_evaluation_says_which_texture_reads_fast_or_slow(monkeypatch):
+    """``score`` prints, per speed and texture, the median speed read over the true speed
+    (a quality-0 frame reads 0), and the evaluation flights store their texture so it can:
+    a texture that reads 10 % slow at 0.5 px/frame and one that reads 20 % fast at 3
+    px/frame show as 0.900 and 1.200."""
+    from emdflow.summary import FlowSummary
+    from emdflow.tools import calibrate_summary as cs
+
+    sums, flows, textures = [], [], []
+    for speed, reads in ((0.5, {"slow": 0.9, "true": 1.0}), (3.0, {"slow": 1.0, "true": 1.2})):
+        for name, factor in reads.items():
+            for frame, direction in enumerate((0.0, 1.0, 2.0)):
+                blind = name == "true" and speed == 0.5 and frame == 2
+                s = factor * speed
+                sums.append(FlowSummary() if blind else
+                            FlowSummary(s * math.cos(direction), s * math.sin(direction), 180))
+                flows.append((speed * math.cos(direction), speed * math.sin(direction)))
+                textures.append(name)
+    lines = []
+    cs._print_texture_speed(sums, np.array(flows), np.array(textures), lines.append)
+    assert lines[0].split("|")[1:] == ["    slow ", "    true"]
+    assert lines[1].split() == ["0.5", "|", "0.900", "|", "1.000"]  # median of 1, 1, 0
+    assert lines[2].split() == ["3", "|", "1.000", "|", "1.200"]
+
+    monkeypatch.setitem(cs.MODEL_EVALUATION_SPEEDS, "paper", (3,))
+    flights = cs.render_evaluation(0.3, frames=2, width=64, height=48)
+    per_texture = 8 * 2
+    assert flights["texture"].tolist() == [t for t in cs.EVALUATION_TEXTURES for _ in range(per_texture)]
+    printed = []
+    cs.score(flights, out=printed.append)
+    assert any(line.startswith("  median speed read / true, by texture") for line in printed)
+
+
 def test_calibration_flights_take_the_evidence_density(tmp_path):
     """``calibrate_summary collect --evidence-row-step N`` samples the stored histograms that
     way (same seed, same flights: more evidence with every row)."""

@@ -563,7 +563,7 @@ def render_evaluation(offset: float = 0.0, random_set: bool = False, frames: int
     warm = est.params.history_frames
     speeds = MODEL_EVALUATION_SPEEDS[model]
     directions = _directions(offset, random_set, speeds)
-    hists, stats, flows = [], [], []
+    hists, stats, flows, names = [], [], [], []
     cell = 0
     for sp in speeds:
         for texture in EVALUATION_TEXTURES:
@@ -586,17 +586,19 @@ def render_evaluation(offset: float = 0.0, random_set: bool = False, frames: int
                         hists.append(field.histogram.copy())
                         stats.append(field.stats.copy())
                         flows.append((fu, fv))
+                        names.append(texture)
             cell += 1
     return dict(hist=np.array(hists), stats=np.array(stats), flow=np.array(flows),
                 shape=np.array([height, width]), frame_index=warm + 1, model=np.array(model),
-                flight_frames=np.array(frames))
+                flight_frames=np.array(frames), texture=np.array(names))
 
 
 def score(data, options=None, out=print):
     """summarize() every stored frame; prints median relative / direction error per speed
     (quality-0 frames count as 100 % / 180°), coverage (share of frames with quality > 0),
     a quality-band table, how much of the error each flight keeps in all its frames (when
-    the data store ``flight_frames``) and the mean time per :func:`summarize` call. Returns
+    the data store ``flight_frames``), each texture's median speed reading per speed (when
+    they store ``texture``) and the mean time per :func:`summarize` call. Returns
     ``(errors (n, 2), quality (n,))``."""
     from emdflow import summarize
     from emdflow.field import FlowField
@@ -637,6 +639,8 @@ def score(data, options=None, out=print):
                 f"| {np.percentile(err[m, 0], 90) * 100:5.1f} %")
     if "flight_frames" in data:
         _print_flight_bias(sums, flows, int(data["flight_frames"]), out)
+    if "texture" in data:
+        _print_texture_speed(sums, flows, np.asarray(data["texture"]), out)
     rated = qual > 0
     if rated.sum() > 2:
         from scipy.stats import spearmanr
@@ -645,6 +649,22 @@ def score(data, options=None, out=print):
         out(f"  rank correlation of quality with -error (Spearman, quality > 0): "
             f"{spearmanr(qual[rated], -err[rated, 0])[0]:.2f}")
     return err, qual
+
+
+def _print_texture_speed(sums, flows, textures, out=print):
+    """Per speed and texture, the median of the speed the summary reads over the true speed
+    (a quality-0 frame reads 0): whether a texture reads fast or slow, which the error
+    medians do not say."""
+    flows = np.asarray(flows, np.float64)
+    speed = np.hypot(flows[:, 0], flows[:, 1])
+    read = np.array([s.speed if s.quality > 0 else 0.0 for s in sums]) / np.maximum(speed, 1e-12)
+    names = list(dict.fromkeys(str(t) for t in textures))
+    out("  median speed read / true, by texture: speed | " + " | ".join(f"{n:>7s}" for n in names))
+    for sp in np.unique(np.round(speed, 6)):
+        at = np.isclose(speed, sp)
+        cells = [np.median(read[at & (textures == n)]) if (at & (textures == n)).any() else math.nan
+                 for n in names]
+        out(f"    {sp:5.4g} | " + " | ".join(f"{c:7.3f}" for c in cells))
 
 
 def _print_flight_bias(sums, flows, per_flight: int, out=print):
