@@ -545,6 +545,32 @@ def test_evaluation_says_which_texture_reads_fast_or_slow(monkeypatch):
     assert any(line.startswith("  median speed read / true, by texture") for line in printed)
 
 
+def test_calibration_flights_take_the_noise_range(tmp_path, capsys):
+    """``calibrate_summary collect --noise-range lo,hi`` draws each flight's sensor noise
+    there (same seed, same flights): over faint ground (contrast 0.2, the extended model's
+    threshold at its floor) σ = 6 changes many more receptor states than σ = 0; a malformed
+    or inverted range is refused with a message that names the option."""
+    from emdflow.reference import STAT_FIRST_CHANGED
+    from emdflow.tools import calibrate_summary as cs
+
+    runs = {}
+    for noise in ("0,0", "6,6"):
+        out = tmp_path / f"n{noise[0]}.npz"
+        cs.main(["collect", "--flights", "2", "--frames", "1", "--seed", "3", "--model", "extended",
+                 "--contrast-range", "0.2,0.2", "--noise-range", noise, "--out", str(out)])
+        with np.load(out) as d:
+            runs[noise] = (d["flow"].copy(), int(d["stats"][:, STAT_FIRST_CHANGED:].sum()))
+    assert np.array_equal(runs["0,0"][0], runs["6,6"][0])
+    assert runs["6,6"][1] > 1.8 * runs["0,0"][1]
+    capsys.readouterr()
+    for bad in ("3,1", "-1,2", "1", "a,b"):
+        with pytest.raises(SystemExit):
+            cs.main(["collect", "--flights", "1", "--noise-range", bad, "--out", str(tmp_path / "x.npz")])
+        assert "--noise-range" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="noise_range"):
+        cs.collect(1, str(tmp_path / "y.npz"), noise_range=(2.0, 1.0))
+
+
 def test_calibration_flights_take_the_evidence_density(tmp_path):
     """``calibrate_summary collect --evidence-row-step N`` samples the stored histograms that
     way (same seed, same flights: more evidence with every row)."""

@@ -150,11 +150,13 @@ def calibration_path(model: str) -> Path:
 
 def collect(flights: int, out: str, frames: int = 7, seed: int = 20240601, width=320, height=240,
             textures=CALIBRATION_TEXTURES, backend: str = "opencl", scale_range=(1.0, 1.0),
-            model: str = "paper", contrast_range=None, evidence_row_step: int = 0):
+            model: str = "paper", contrast_range=None, evidence_row_step: int = 0,
+            noise_range=(1.0, 3.0)):
     """Render ``flights`` random flights; store every ready frame's histogram and truth.
 
     Each flight draws a direction, a speed (log-uniform over the model's range, 0.4..18
-    px/frame for the paper's model), noise σ, a contrast, a ground scale (log-uniform in
+    px/frame for the paper's model), a sensor noise σ (uniform in ``noise_range``, gray
+    levels; 1..3 for the committed tables), a contrast, a ground scale (log-uniform in
     ``scale_range``: texture px per image px, so the photographs are seen finer or
     coarser) and a start that keeps the whole flight inside the photograph (no mirrored
     borders). For the extended model the contrast is log-uniform 0.2..1 and 60 % of the
@@ -164,6 +166,9 @@ def collect(flights: int, out: str, frames: int = 7, seed: int = 20240601, width
     counts the *ready* frames per flight (the model's history comes on top: 3 frames for
     the paper's model, whose flights therefore have ``frames`` frames in all as before,
     12 for the extended one)."""
+    lo_noise, hi_noise = (float(x) for x in noise_range)
+    if not (math.isfinite(hi_noise) and 0.0 <= lo_noise <= hi_noise):
+        raise ValueError(f"noise_range={tuple(noise_range)!r}: expected 0 <= lo <= hi (gray levels)")
     from emdflow import FlowEstimator
     from emdflow.synthetic import CameraFlight, load_texture
 
@@ -191,7 +196,7 @@ def collect(flights: int, out: str, frames: int = 7, seed: int = 20240601, width
         scale = min(scale, fit)
         start = (inside_start(rng, tw, width * scale, -flow[0] * scale * (total - 1)),
                  inside_start(rng, th, height * scale, -flow[1] * scale * (total - 1)))
-        noise = float(rng.uniform(1.0, 3.0))
+        noise = float(rng.uniform(lo_noise, hi_noise))
         if model == "paper":  # the committed table's random stream, unchanged
             contrast = float(rng.uniform(*ranges["contrast"]))
             drift = 0.0
@@ -744,6 +749,9 @@ def main(argv=None):
     c.add_argument("--evidence-row-step", type=int, default=0,
                    help="rows between the rows that feed the histograms (EngineParams; default "
                         "0: automatic)")
+    c.add_argument("--noise-range", default="1,3",
+                   help="sensor noise range lo,hi of the flights, gray levels (uniform; default "
+                        "1,3, as the committed tables were made)")
     f = sub.add_parser("fit")
     f.add_argument("data", nargs="+")
     f.add_argument("--write", action="store_true",
@@ -781,12 +789,19 @@ def main(argv=None):
         bad = set(a.textures.split(",")) & set(EVALUATION_TEXTURES)
         if bad:
             ap.error(f"--textures: {', '.join(sorted(bad))} belong to the evaluation set")
+        try:
+            noise_range = tuple(float(x) for x in a.noise_range.split(","))
+            if len(noise_range) != 2 or not (math.isfinite(noise_range[1])
+                                             and 0.0 <= noise_range[0] <= noise_range[1]):
+                raise ValueError
+        except ValueError:
+            ap.error(f"--noise-range {a.noise_range!r}: expected lo,hi with 0 <= lo <= hi (gray levels)")
         collect(a.flights, a.out, a.frames, a.seed, textures=tuple(a.textures.split(",")),
                 backend=a.backend,
                 scale_range=tuple(float(x) for x in a.scale_range.split(",")), model=a.model,
                 contrast_range=(tuple(float(x) for x in a.contrast_range.split(","))
                                 if a.contrast_range else None),
-                evidence_row_step=a.evidence_row_step)
+                evidence_row_step=a.evidence_row_step, noise_range=noise_range)
     elif a.cmd == "fit":
         fit_main(a.data, a.write, a.model)
     elif a.cmd == "misfit":
