@@ -81,7 +81,8 @@ frames of history before the ``--frames`` recorded ones.)
 slower. ``evaluate --save F.npz`` stores the rendered histograms and ``evaluate --data
 F.npz`` scores them again without rendering (for tuning :class:`SummaryOptions`).
 ``evaluate --size WxH`` flies at another frame size and ``evaluate --noise SIGMA`` with
-another sensor noise (σ gray levels; 2 unless told, the calibration flights draw 1–3).
+another sensor noise (σ gray levels; 2 unless told); ``collect --noise-range lo,hi`` draws
+the calibration flights' σ from another range (1..3 unless told).
 
 Calibration uses the photographs ``moon, coffee, astronaut, rocket`` with random
 direction, speed (log-uniform 0.4..18 px/frame), start position, noise and contrast; every
