@@ -149,6 +149,15 @@ def calibration_path(model: str) -> Path:
     return Path(__file__).resolve().parents[1] / name
 
 
+def _checked_noise(lo, hi, name: str) -> tuple[float, float]:
+    """``(lo, hi)`` as floats when ``0 <= lo <= hi < inf`` (gray levels), else a ValueError
+    that starts with ``name``."""
+    lo, hi = float(lo), float(hi)
+    if not (math.isfinite(hi) and 0.0 <= lo <= hi):
+        raise ValueError(f"{name}: the sensor noise must be a standard deviation >= 0 (gray levels)")
+    return lo, hi
+
+
 def collect(flights: int, out: str, frames: int = 7, seed: int = 20240601, width=320, height=240,
             textures=CALIBRATION_TEXTURES, backend: str = "opencl", scale_range=(1.0, 1.0),
             model: str = "paper", contrast_range=None, evidence_row_step: int = 0,
@@ -167,9 +176,7 @@ def collect(flights: int, out: str, frames: int = 7, seed: int = 20240601, width
     counts the *ready* frames per flight (the model's history comes on top: 3 frames for
     the paper's model, whose flights therefore have ``frames`` frames in all as before,
     12 for the extended one)."""
-    lo_noise, hi_noise = (float(x) for x in noise_range)
-    if not (math.isfinite(hi_noise) and 0.0 <= lo_noise <= hi_noise):
-        raise ValueError(f"noise_range={tuple(noise_range)!r}: expected 0 <= lo <= hi (gray levels)")
+    lo_noise, hi_noise = _checked_noise(*noise_range, f"noise_range={tuple(noise_range)!r} (needs lo <= hi)")
     from emdflow import FlowEstimator
     from emdflow.synthetic import CameraFlight, load_texture
 
@@ -558,9 +565,7 @@ def render_evaluation(offset: float = 0.0, random_set: bool = False, frames: int
     and an exposure ramp of ``drift`` (relative) across each whole flight, ``frames``
     ready frames each; ``evidence_row_step`` as in :class:`emdflow.EngineParams` (0:
     automatic). Returns the histograms, statistics and true flows."""
-    if not (math.isfinite(noise) and noise >= 0):
-        raise ValueError(f"noise={noise!r}: the sensor noise must be a standard deviation >= 0 "
-                         "(gray levels)")
+    _checked_noise(noise, noise, f"noise={noise!r}")
     from emdflow import FlowEstimator
     from emdflow.synthetic import CameraFlight, load_texture
 
@@ -668,8 +673,10 @@ def _print_texture_speed(sums, flows, textures, out=print):
     out("  median speed read / true, by texture: speed | " + " | ".join(f"{n:>7s}" for n in names))
     for sp in np.unique(np.round(speed, 6)):
         at = np.isclose(speed, sp)
-        cells = [np.median(read[at & (textures == n)]) if (at & (textures == n)).any() else math.nan
-                 for n in names]
+        cells = []
+        for n in names:
+            m = at & (textures == n)
+            cells.append(np.median(read[m]) if m.any() else math.nan)
         out(f"    {sp:5.4g} | " + " | ".join(f"{c:7.3f}" for c in cells))
 
 
@@ -791,12 +798,13 @@ def main(argv=None):
         if bad:
             ap.error(f"--textures: {', '.join(sorted(bad))} belong to the evaluation set")
         try:
-            noise_range = tuple(float(x) for x in a.noise_range.split(","))
-            if len(noise_range) != 2 or not (math.isfinite(noise_range[1])
-                                             and 0.0 <= noise_range[0] <= noise_range[1]):
+            lo_hi = a.noise_range.split(",")
+            if len(lo_hi) != 2:
                 raise ValueError
-        except ValueError:
-            ap.error(f"--noise-range {a.noise_range!r}: expected lo,hi with 0 <= lo <= hi (gray levels)")
+            noise_range = _checked_noise(*lo_hi, f"--noise-range {a.noise_range!r} (needs lo <= hi)")
+        except ValueError as exc:
+            ap.error(str(exc) if str(exc).startswith("--") else
+                     f"--noise-range {a.noise_range!r}: expected lo,hi with 0 <= lo <= hi (gray levels)")
         collect(a.flights, a.out, a.frames, a.seed, textures=tuple(a.textures.split(",")),
                 backend=a.backend,
                 scale_range=tuple(float(x) for x in a.scale_range.split(",")), model=a.model,
@@ -819,9 +827,10 @@ def main(argv=None):
             width, height = parse_size(a.size)
         except ValueError as exc:
             ap.error(f"--{exc}")  # "--size '...': expected WIDTHxHEIGHT, ..."
-        if not (math.isfinite(a.noise) and a.noise >= 0):
-            ap.error(f"--noise {a.noise:g}: the sensor noise must be a standard deviation >= 0 "
-                     "(gray levels)")
+        try:
+            _checked_noise(a.noise, a.noise, f"--noise {a.noise:g}")
+        except ValueError as exc:
+            ap.error(str(exc))
         evaluate(a.offset, a.random, a.frames, a.backend, a.save, a.data, a.model, a.contrast,
                  a.drift, options, a.evidence_row_step, width, height, a.noise)
 
