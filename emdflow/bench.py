@@ -12,7 +12,10 @@ blocks ran seconds apart under the same load):
 * ``opencl``   — ``FlowEstimator.update`` on the OpenCL backend: frame upload, all kernels,
   result download to the host (the paper's 7-scale model; ``--model extended`` the
   daemon's default model);
-* ``opencl+summary`` — the same plus :func:`emdflow.summarize` (what the daemon pays);
+* ``opencl-dense`` — the same engine made with ``summary_evidence=False``: the dense
+  field (and the frame's counters) only, without the histograms the summary reads — the
+  detector as the paper defines it, for a caller that never summarises;
+* ``opencl+summary`` — ``opencl`` plus :func:`emdflow.summarize` (what the daemon pays);
 * ``numpy``    — the vectorised reference (fewer, shorter blocks: it is slow);
 * ``dis``      — OpenCV's DIS optical flow, ULTRAFAST preset, between consecutive frames;
 * ``blur``     — one ``cv2.GaussianBlur`` 11×11 pass (a yardstick for memory speed).
@@ -61,6 +64,8 @@ def _methods(width: int, height: int, frames, *, backend_kwargs=None):
     methods = {}
     est = FlowEstimator(width, height, backend="opencl", **kwargs)
     methods["opencl"] = lambda i: est.update(frames[i])
+    est_d = FlowEstimator(width, height, backend="opencl", **{**kwargs, "summary_evidence": False})
+    methods["opencl-dense"] = lambda i: est_d.update(frames[i])
     est_s = FlowEstimator(width, height, backend="opencl", **kwargs)
     methods["opencl+summary"] = lambda i: summarize(est_s.update(frames[i]))
     ref = FlowEstimator(width, height, backend="numpy", **kwargs)
@@ -103,9 +108,9 @@ def alternating_blocks(methods: dict, n_frames: int, *, rounds: int, block: int,
 def run_benchmark(*, sizes=SIZES, block: int = 50, rounds: int = 7, numpy_block: int = 3,
                   frames_per_size: int = 40, backend_kwargs=None, progress=None, warmup: int = 2) -> dict:
     """Time every method; returns ``{(w, h): {method: median ms/frame}}``, plus
-    ``"dis_per_opencl_paired"``: the median over the rounds of each round's DIS / OpenCL
-    time ratio (less sensitive than the ratio of the medians to load that comes and goes
-    between rounds). Each block but the numpy reference's (100 ms frames) starts with
+    ``"dis_per_opencl_paired"`` (and ``"dis_per_dense_paired"``): the median over the
+    rounds of each round's DIS / OpenCL (DIS / dense-only) time ratio (less sensitive than
+    the ratio of the medians to load that comes and goes between rounds). Each block but the numpy reference's (100 ms frames) starts with
     ``warmup`` untimed frames (the frames just before the block's, so the engines' history
     runs on without a jump)."""
     results = {}
@@ -121,23 +126,27 @@ def run_benchmark(*, sizes=SIZES, block: int = 50, rounds: int = 7, numpy_block:
         results[(width, height)] = {name: statistics.median(v) for name, v in samples.items()}
         # DIS / engine within each round (blocks seconds apart share the host's load of
         # the moment), then the median over the rounds
-        results[(width, height)]["dis_per_opencl_paired"] = statistics.median(
-            d / o for d, o in zip(samples["dis"], samples["opencl"]))
+        for key, engine in (("dis_per_opencl_paired", "opencl"), ("dis_per_dense_paired", "opencl-dense")):
+            results[(width, height)][key] = statistics.median(
+                d / o for d, o in zip(samples["dis"], samples[engine]))
     return results
 
 
 def format_table(results: dict) -> str:
     lines = [
-        "| size | OpenCL engine | + summary | numpy reference | DIS ultrafast | GaussianBlur 11x11 "
-        "| DIS / OpenCL | per round | OpenCL / blur | numpy / OpenCL |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| size | OpenCL engine | dense field only | + summary | numpy reference | DIS ultrafast "
+        "| GaussianBlur 11x11 | DIS / OpenCL | per round | DIS / dense only | per round "
+        "| OpenCL / blur | numpy / OpenCL |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for (w, h), r in results.items():
         paired = r.get("dis_per_opencl_paired")
+        paired_dense = r.get("dis_per_dense_paired")
         lines.append(
-            f"| {w}x{h} | {r['opencl']:.3f} ms | {r['opencl+summary']:.3f} ms | {r['numpy']:.1f} ms "
-            f"| {r['dis']:.3f} ms | {r['blur']:.3f} ms | {r['dis'] / r['opencl']:.2f}x "
-            f"| {'' if paired is None else f'{paired:.2f}x'} "
+            f"| {w}x{h} | {r['opencl']:.3f} ms | {r['opencl-dense']:.3f} ms | {r['opencl+summary']:.3f} ms "
+            f"| {r['numpy']:.1f} ms | {r['dis']:.3f} ms | {r['blur']:.3f} ms | {r['dis'] / r['opencl']:.2f}x "
+            f"| {'' if paired is None else f'{paired:.2f}x'} | {r['dis'] / r['opencl-dense']:.2f}x "
+            f"| {'' if paired_dense is None else f'{paired_dense:.2f}x'} "
             f"| {r['opencl'] / r['blur']:.1f}x | {r['numpy'] / r['opencl']:.0f}x |"
         )
     return "\n".join(lines)
@@ -150,7 +159,7 @@ def write_plot(results: dict, path: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    methods = ["opencl", "opencl+summary", "dis", "blur", "numpy"]
+    methods = ["opencl", "opencl-dense", "opencl+summary", "dis", "blur", "numpy"]
     fig, ax = plt.subplots(figsize=(7, 3.6), dpi=100)
     width = 0.8 / len(results)
     for k, ((w, h), r) in enumerate(results.items()):

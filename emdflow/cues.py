@@ -397,7 +397,13 @@ def looming_cues(field: FlowField, *, min_detections: int = 50) -> LoomingCues:
     LoomingCues
         All zero / inf when the history is not full or evidence is too thin (no axis with
         ``min_detections`` detections in at least 4 of the 16 position bins).
+
+    Raises
+    ------
+    ValueError
+        If the field has no summary evidence (``FlowEstimator(..., summary_evidence=False)``).
     """
+    field.require_evidence("looming_cues()")
     if not field.ready or field.positions is None:
         return LoomingCues()
     pos = field.positions.astype(np.float64)  # (axis, code, bin)
@@ -429,7 +435,9 @@ def slope_expansion_rate(field: FlowField, *, min_detections: int = 50) -> float
     """The uncalibrated expansion rate: the line fit of the mean signed channel speed
     against position (what :func:`looming_cues` falls back to for a channel set without a
     table; kept for comparison, e.g. by ``emdflow.tools.zoom_eval``). None when no axis
-    has ``min_detections`` detections in at least 3 position bins."""
+    has ``min_detections`` detections in at least 3 position bins; ValueError for a field
+    without summary evidence."""
+    field.require_evidence("slope_expansion_rate()")
     if not field.ready or field.positions is None:
         return None
     pos = field.positions.astype(np.float64)

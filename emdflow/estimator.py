@@ -71,6 +71,10 @@ class FlowEstimator:
         Every how many rows the detections feed the summary's evidence; 0 (default):
         automatic, about 60 rows per frame. Denser evidence gives a more accurate summary
         direction for more engine time (see :class:`emdflow.EngineParams`).
+    summary_evidence : bool, optional
+        Compute the evidence of :func:`emdflow.summarize` and of the looming cues
+        (default True). False: the dense field and the counters only, ~15 % less engine
+        time at 640×480; those functions then refuse the field (ValueError).
     device : str or int, optional
         OpenCL device: an index into :func:`emdflow.opencl_devices` or a substring of the
         platform/device name. Default: the ``EMDFLOW_OPENCL_DEVICE`` environment variable,
@@ -110,6 +114,7 @@ class FlowEstimator:
         brightness_compensation: bool = False,
         gradient_classes: bool = False,
         evidence_row_step: int = 0,
+        summary_evidence: bool = True,
         device=None,
     ):
         for name, value in (("width", width), ("height", height)):
@@ -134,6 +139,7 @@ class FlowEstimator:
             brightness_compensation=bool(brightness_compensation),
             gradient_classes=bool(gradient_classes),
             evidence_row_step=evidence_row_step,
+            summary_evidence=summary_evidence,
         )
         if backend == "numpy":
             self._engine = ReferenceEngine(self.width, self.height, self.params)

@@ -47,13 +47,14 @@ class FlowField:
         Speed of each channel, px/frame (``u = sign(code) · speeds[|code| − 1]``).
     stats : ndarray of int64
         Per-frame counters (detections, textured and saturated pixels, changed states).
-    histogram : ndarray of int64, shape (2, 2·channels, params.histogram_bins)
+    histogram : ndarray of int64, shape (2, 2·channels, params.histogram_bins), or None
         Detections binned by axis, signed channel, gradient-strength class and gradient
         orientation (``class · ORIENTATION_BINS + orientation``; the summary's input; see
-        :func:`emdflow.reference.summary_statistics`).
+        :func:`emdflow.reference.summary_statistics`). None when the estimator was made
+        with ``summary_evidence=False``.
     positions : ndarray of int64, shape (2, 2·channels, position bins) or None
         The same detections binned by x (horizontal) or y (vertical) position, for the
-        expansion and balance cues.
+        expansion and balance cues (None like ``histogram``).
     frame_index : int
         Frames seen since the last reset, counting this one (1 for the first frame).
     exposure_step : bool
@@ -91,6 +92,12 @@ class FlowField:
     @property
     def shape(self) -> tuple[int, int]:
         return self._shape
+
+    def require_evidence(self, caller: str) -> None:
+        """Raise ValueError (naming ``caller``) if the field carries no summary evidence."""
+        if not self.params.summary_evidence:
+            raise ValueError(f"{caller}: this field has no summary evidence (its FlowEstimator was "
+                             "made with summary_evidence=False, which computes the dense field only)")
 
     def _decode(self) -> None:
         self._u_code, self._v_code = self._packed.decode()

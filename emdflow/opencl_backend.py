@@ -229,7 +229,9 @@ class _Layout:
         # int32 statistics: the copies of the counters, of the positions, of the histogram
         self.pos_offset = self.COUNTER_COPIES * self.SLOT_INTS
         self.hist_offset = self.pos_offset + self.POS_COPIES * self.pos_size
-        self.n_stats = self.hist_offset + self.HIST_COPIES * self.hist_size
+        # (without the summary's evidence only the counters are zeroed and read)
+        self.n_stats = (self.hist_offset + self.HIST_COPIES * self.hist_size if params.summary_evidence
+                        else self.pos_offset)
         # output: per axis five bit planes (winning channel index, 4 bits, and sign) laid
         # out as the state planes' rows (OUT_PLANE words each: H rows of NWP words, padded)
         self.out_words = 2 * 5 * self.OUT_PLANE
@@ -253,6 +255,7 @@ class _Layout:
             "RADIUS": len(w) // 2, "WEIGHTS": join(w),
             "SHARP": int(params.sharp_templates),
             "STATS_OFFSET": self.stats_offset, "N_STATS": self.n_stats,
+            "EVIDENCE": int(params.summary_evidence),
             "EVIDENCE_ROW_STEP": params.evidence_row_step_for(height),
             # bits of a 32-pixel word in the sampled columns (the step is a power of two)
             "EVIDENCE_COLUMNS": "0x%08Xu" % sum(1 << j for j in range(0, 32, params.evidence_column_step(width))),
@@ -510,6 +513,8 @@ class OpenCLEngine:
         self.last_theta_q = self.theta_q
         self.theta_q = self.params.next_threshold_q(int(stats[STAT_CONTRAST]),
                                                     self.params.contrast_samples(lay.W, lay.H))
+        if not self.params.summary_evidence:
+            return codes, stats, None, None
         positions = _fold_copies(ints[lay.pos_offset : lay.hist_offset].reshape(lay.POS_COPIES, lay.pos_size))
         copies = ints[lay.hist_offset :].reshape(lay.HIST_COPIES, lay.hist_size)
         hist = _fold_copies(copies).reshape(2, 2 * n_ch, self.params.histogram_bins)

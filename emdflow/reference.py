@@ -302,6 +302,7 @@ def summary_statistics(
     stats : ndarray of int64, shape (STAT_FIRST_CHANGED + n_channels,)
     hist : ndarray of int64, shape (2, 2·n_channels, params.histogram_bins)
     positions : ndarray of int64, shape (2, 2·n_channels, POSITION_BINS)
+        Both None without ``params.summary_evidence``.
     """
     channels = params.channels
     H, W = frame.shape
@@ -324,6 +325,8 @@ def summary_statistics(
     step = states_now[finest] if step_states is None else step_states
     stats[STAT_STEP_CHANGED] = np.count_nonzero(step)
     stats[STAT_BRIGHTENING] = np.count_nonzero(step > 0)
+    if not params.summary_evidence:
+        return stats, None, None
     positions = np.zeros((2, 2 * len(channels), POSITION_BINS), np.int64)
 
     hist = np.zeros((2, 2 * len(channels), params.histogram_bins), np.int64)
@@ -437,8 +440,9 @@ class ReferenceEngine:
                 self.matches[(c, dneg)] = mn
                 pos[axis].append(mp)
                 neg[axis].append(mn)
-            p_mid = self._p_history[-1 - d] if len(self._p_history) > d else p_now
-            receptors_mid[(k, d)] = box_sums(p_mid, k)
+            if prm.summary_evidence:  # the evidence's gradients
+                p_mid = self._p_history[-1 - d] if len(self._p_history) > d else p_now
+                receptors_mid[(k, d)] = box_sums(p_mid, k)
         u_code = fuse_channels(pos[0], neg[0])
         v_code = fuse_channels(pos[1], neg[1])
         stats, hist, positions = summary_statistics(

@@ -854,6 +854,11 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
         blank, saturated or texture-less frame, inconsistent evidence) the flow is 0.0
         with quality 0.
 
+    Raises
+    ------
+    ValueError
+        If the field has no summary evidence (``FlowEstimator(..., summary_evidence=False)``).
+
     Notes
     -----
     IoC guess refined by calibrated maximum likelihood over the detection histogram; see
@@ -862,6 +867,7 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
     opts = options or _DEFAULT_OPTIONS
     if not isinstance(field, FlowField):
         raise TypeError(f"summarize() takes a FlowField, not {type(field).__name__}")
+    field.require_evidence("summarize()")
     if not field.ready or field.exposure_step:
         return _BLIND  # no history yet, or a global brightness step is in the templates
     textured = field.textured_fraction

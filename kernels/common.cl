@@ -19,6 +19,8 @@
  *                   kernel argument: it adapts frame by frame in the adaptive mode)
  *   RADIUS, WEIGHTS prefilter half-width and integer taps (sum 256)
  *   SHARP           1 to accept the sharp template
+ *   EVIDENCE        1 to compute the summary's evidence (histograms), 0 for the dense
+ *                   field and the counters only (EngineParams.summary_evidence)
  *   EVIDENCE_ROW_STEP  rows between the rows whose detections feed the histogram
  *   EVIDENCE_COLUMNS   mask of the sampled columns within a 32-pixel word
  *   COUNTER_COPIES, SLOT_INTS, POS_COPIES, HIST_COPIES  copies of the counters (and their
@@ -29,7 +31,8 @@
  *   OUT_PLANE       words of one output bit plane: rows of NWP words like the state planes
  *                   (H NWP, rounded up to the detector kernel's 8-word runs)
  *   STATS_OFFSET    byte offset of the int32 statistics in the result buffer
- *   N_STATS         int32 statistics (counters, position and orientation histograms)
+ *   N_STATS         int32 statistics (counters, position and orientation histograms;
+ *                   the counters only without EVIDENCE)
  *   NBINS           orientation bins; ORIENT_C, ORIENT_S boundary table (x 2^14)
  *   NCLASS, CLASS_STEPS  gradient-strength classes of the evidence and their steps m
  *                   (class = #{m : 512 |g|_1 >= m 2 theta_q k^2})

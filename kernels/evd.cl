@@ -82,7 +82,7 @@ __kernel void velocity_detectors(__global const uint *planes, __global char *res
     /* does the run hold a row whose detections feed the summary's evidence? */
     const int y_first = f / NWP, y_last = (f + 7) / NWP;
     const int evidence_row = (y_first + EVIDENCE_ROW_STEP - 1) / EVIDENCE_ROW_STEP * EVIDENCE_ROW_STEP;
-    const bool evidence = evidence_row <= y_last && evidence_row < H;
+    const bool evidence = EVIDENCE && evidence_row <= y_last && evidence_row < H;
 
     for (int axis = 0; axis < 2; axis++) {
         uint8 decided = (uint8)(0u), sign = (uint8)(0u);

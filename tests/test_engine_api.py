@@ -112,6 +112,7 @@ def test_bad_frames_raise_value_error_naming_expected_and_received(frame, messag
         (dict(backend="cuda"), "backend"),
         (dict(evidence_row_step=-1), "evidence_row_step"),
         (dict(evidence_row_step=2.5), "evidence_row_step"),
+        (dict(summary_evidence="no"), "summary_evidence"),
     ],
 )
 def test_bad_parameters_raise_value_error_naming_them(kwargs, message):
@@ -164,3 +165,22 @@ def test_kernels_are_installed_with_the_package():
 
         assert "site-packages" in emdflow.__file__, emdflow.__file__
         assert importlib.resources.files("emdflow.kernels").joinpath("evd.cl").is_file()
+
+
+@pytest.mark.parametrize("backend", ["opencl", "numpy"])
+def test_dense_only_fields_cannot_be_summarised(backend):
+    """A field of ``summary_evidence=False`` has the flow but no histograms: summarize and
+    the looming cues refuse it with a message naming the option, even before the history
+    is full; the dense field is there."""
+    from emdflow.cues import looming_cues, slope_expansion_rate
+
+    est = emdflow.FlowEstimator(80, 60, backend, summary_evidence=False)
+    flight = _flight(80, 60, seed=2)
+    fields = [est.update(flight.render(t)) for t in range(5)]
+    assert fields[-1].ready and fields[0].histogram is None and fields[-1].positions is None
+    assert np.isfinite(fields[-1].u).any()
+    for field in (fields[0], fields[-1]):
+        for fn, name in ((emdflow.summarize, "summarize"), (looming_cues, "looming_cues"),
+                         (slope_expansion_rate, "slope_expansion_rate")):
+            with pytest.raises(ValueError, match=rf"{name}\(\).*summary_evidence=False"):
+                fn(field)

@@ -116,6 +116,32 @@ def test_parameter_variants(params):
     assert _compare(width, height, frames, params) > 0
 
 
+@pytest.mark.parametrize("model", ["paper", "extended"])
+def test_dense_only_engine_gives_the_same_field_and_counters(model):
+    """``summary_evidence=False`` drops the histograms and nothing else: both backends
+    give the codes and counters of the full engine (and of each other), and no
+    histograms."""
+    width, height = 97, 61
+    full = EngineParams(**MODELS[model])
+    dense = EngineParams(**MODELS[model], summary_evidence=False)
+    flight = CameraFlight("grass", width=width, height=height, flow=(1.3, -2.1), noise_sigma=2, seed=8)
+    engines = (ReferenceEngine(width, height, full), ReferenceEngine(width, height, dense),
+               opencl_backend.OpenCLEngine(width, height, dense), opencl_backend.OpenCLEngine(width, height, full))
+    detections = 0
+    for t in range(full.history_frames + 5):
+        frame = flight.render(t)
+        (u, v, stats, hist, pos), *others = (engine.step(frame) for engine in engines)
+        for kind, (u_o, v_o, stats_o, hist_o, pos_o) in zip(("numpy dense", "opencl dense", "opencl"), others):
+            assert np.array_equal(u, u_o) and np.array_equal(v, v_o), f"frame {t}: {kind} codes differ"
+            assert np.array_equal(stats, stats_o), f"frame {t}: {kind} counters differ"
+            if kind == "opencl":
+                assert np.array_equal(hist, hist_o) and np.array_equal(pos, pos_o)
+            else:
+                assert hist_o is None and pos_o is None
+        detections += int(np.count_nonzero(u) + np.count_nonzero(v))
+    assert detections > 0 and hist.sum() > 0
+
+
 @pytest.mark.parametrize("portable", [False, True], ids=["x86", "portable"])
 @pytest.mark.parametrize("size,model", [((89, 67), "extended"), ((75, 301), "extended"),
                                         ((89, 67), "finest-scale-3")])

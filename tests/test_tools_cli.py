@@ -290,20 +290,22 @@ def test_bench_stages_times_every_command_of_a_frame(capsys):
 
 
 def test_bench_ratios_of_medians_and_per_round(monkeypatch):
-    """The table's two DIS / OpenCL ratios: of the medians, and the median of each round's
-    own ratio. A clock where DIS takes 3x the engine's time, and from the middle of the
-    third round (after its engine block) everything takes twice as long: the ratio of the
-    medians compares a fast engine with a slow DIS (6x), each round's ratio is 3x but one."""
+    """The table's DIS / OpenCL ratios: of the medians, and the median of each round's
+    own ratio. A clock where DIS takes 3x the engine's time (4x the dense-only engine's),
+    and from the middle of the third round (after its engine blocks) everything takes
+    twice as long: the ratio of the medians compares a fast engine with a slow DIS (6x,
+    8x dense only), each round's ratio is 3x (4x) but one."""
     from emdflow import bench
 
     state = {"t": 0.0, "round": 0}
-    order = ["opencl", "opencl+summary", "numpy", "dis", "blur"]
+    order = ["opencl", "opencl-dense", "opencl+summary", "numpy", "dis", "blur"]
+    cost = {"dis": 3.0, "opencl-dense": 0.75}
 
     def methods(width, height, frames, backend_kwargs=None):
         def make(name):
             def run(i):
                 loaded = state["round"] >= (2 if name == "dis" else 3)
-                state["t"] += (3.0 if name == "dis" else 1.0) * (2.0 if loaded else 1.0) * 1e-3
+                state["t"] += cost.get(name, 1.0) * (2.0 if loaded else 1.0) * 1e-3
             return run
         return {name: make(name) for name in order}
 
@@ -315,8 +317,10 @@ def test_bench_ratios_of_medians_and_per_round(monkeypatch):
     r = results[(64, 48)]
     assert r["dis"] / r["opencl"] == pytest.approx(6.0)  # engine 1, 1, 1, 2, 2; DIS 3, 3, 6, 6, 6
     assert r["dis_per_opencl_paired"] == pytest.approx(3.0)  # 3, 3, 6, 3, 3
+    assert r["dis"] / r["opencl-dense"] == pytest.approx(8.0)
+    assert r["dis_per_dense_paired"] == pytest.approx(4.0)
     table = bench.format_table(results)
-    assert "| per round |" in table and "| 6.00x | 3.00x |" in table
+    assert "| per round |" in table and "| 6.00x | 3.00x | 8.00x | 4.00x |" in table
 
 
 def test_bench_blocks_start_with_untimed_frames(monkeypatch):
@@ -335,7 +339,7 @@ def test_bench_blocks_start_with_untimed_frames(monkeypatch):
                 state["last"] = name
                 calls.setdefault(name, []).append(i)
             return run
-        return {name: make(name) for name in ["opencl", "opencl+summary", "numpy", "dis", "blur"]}
+        return {name: make(name) for name in ["opencl", "opencl-dense", "opencl+summary", "numpy", "dis", "blur"]}
 
     monkeypatch.setattr(bench, "_methods", methods)
     monkeypatch.setattr(bench, "_frames", lambda w, h, n: [None] * n)
