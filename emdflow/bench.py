@@ -160,7 +160,7 @@ def write_plot(results: dict, path: str) -> None:
     import matplotlib.pyplot as plt
 
     methods = ["opencl", "opencl-dense", "opencl+summary", "dis", "blur", "numpy"]
-    fig, ax = plt.subplots(figsize=(7, 3.6), dpi=100)
+    fig, ax = plt.subplots(figsize=(8.5, 3.6), dpi=100)
     width = 0.8 / len(results)
     for k, ((w, h), r) in enumerate(results.items()):
         xs = np.arange(len(methods)) + k * width

@@ -73,7 +73,7 @@ class FlowEstimator:
         direction for more engine time (see :class:`emdflow.EngineParams`).
     summary_evidence : bool, optional
         Compute the evidence of :func:`emdflow.summarize` and of the looming cues
-        (default True). False: the dense field and the counters only, ~15 % less engine
+        (default True). False: the dense field and the counters only, 16–20 % less engine
         time at 640×480; those functions then refuse the field (ValueError).
     device : str or int, optional
         OpenCL device: an index into :func:`emdflow.opencl_devices` or a substring of the

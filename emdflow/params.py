@@ -160,7 +160,7 @@ class EngineParams:
         Compute the summary's evidence next to the detector (default True): the
         orientation and position histograms that :func:`emdflow.summarize` and
         :func:`emdflow.cues.looming_cues` read. False gives the dense field (``u``, ``v``)
-        and the frame's counters only, ~15 % faster at 640×480 (README, "Speed"), for a
+        and the frame's counters only, 16–20 % faster at 640×480 (README, "Speed"), for a
         caller that never summarises (a researcher's dense flow, flow videos); those two
         functions then refuse the field. The detections do not change.
     """
