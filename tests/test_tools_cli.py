@@ -438,7 +438,7 @@ def test_model_option_of_the_tools_selects_a_named_model(backend):
     import argparse
 
     from emdflow.params import MODELS
-    from emdflow.tools import add_engine_arguments, engine_kwargs, make_estimator
+    from emdflow.tools import ToolError, add_engine_arguments, engine_kwargs, make_estimator
 
     parser = argparse.ArgumentParser()
     add_engine_arguments(parser)
@@ -451,6 +451,9 @@ def test_model_option_of_the_tools_selects_a_named_model(backend):
     assert engine_kwargs(args) == dict(MODELS["extended"], delays=(1, 2))
     with pytest.raises(SystemExit):
         parser.parse_args(["--model", "fast"])
+    # the tools summarise every frame: a dense-only engine is refused up front
+    with pytest.raises(ToolError, match="summary_evidence=False"):
+        make_estimator(parser.parse_args(["--engine-opt", "summary_evidence=False"]), 64, 48)
 
 
 # ---------------------------------------------------------------------------------- errors
