@@ -135,7 +135,8 @@ class EngineParams:
         Luminance adaptation (off in the paper's model): an exposure change is a gain, so
         before thresholding each channel compares ``256 · R(t)`` with ``ρ · R(t−D)``, ``ρ``
         the ratio of the whole prefiltered frames' brightness over the same ``D`` frames
-        ×256 (:meth:`brightness_ratio_q`; threshold ``256 · T``; exact integers). An
+        ×256 (:meth:`brightness_ratio_q`; threshold :meth:`compensated_threshold`
+        ``256 · T + 128``; exact integers). An
         exposure drift then no longer lowers the threshold of one polarity and raises the
         other's, bright parts of the scene no more than dark ones: at a drift of 20 % over
         a flight, the slow channels' changes of 1–2 px of motion and the drift are of the
@@ -261,6 +262,23 @@ class EngineParams:
         """Integer threshold on a k×k box-sum difference: ``(θq · k²) >> 8`` = ``floor(θ · k²)``."""
         q = self.threshold_q(self.threshold) if theta_q is None else int(theta_q)
         return (q * k * k) >> 8
+
+    @staticmethod
+    def compensated_threshold(box_threshold: int) -> int:
+        """Threshold on the gain-compensated change ``256 · R(t) − ρ · R(t−D)`` (units of
+        1/256 gray level × k²) for the box threshold ``T``: ``256 · T + 128``.
+
+        The plain change is a whole number, so its test ``> T`` means ``≥ T + 1``; the
+        compensated change is not, and the same test on it, ``> 256 · T``, let through
+        every change between ``T`` and ``T + 1`` the plain path drops: under an exposure
+        drift the threshold's floor (θ = 1.5, ``T = 1`` at scale 1) then sat at the
+        rounding noise of the prefiltered frames, and a static noisy scene at a quarter
+        of the contrast lit 18–21× the slow channels' states of a steady exposure (now
+        2–4×: the rounding noise of a compensated change is no longer the same in both
+        frames). ``256 · T + 128`` is the plain test on the compensated change rounded to
+        whole units (halves down), and with ρ = 256 exactly the plain test.
+        """
+        return 256 * int(box_threshold) + 128
 
     #: Largest brightness ratio of :meth:`brightness_ratio_q` (×256): 16× brighter. Keeps
     #: ``ratio · R`` of the largest box sums (15 × 15 × 255) within 32-bit integers.

@@ -421,8 +421,9 @@ class ReferenceEngine:
                 ratio_q = prm.brightness_ratio_q(self._brightness[-1], self._brightness[-1 - d])
                 if ratio_q == 256:
                     s_now = ternary_states(receptor_change(p_now, p_then, k), T)
-                else:  # exposure gain: 256 R(t) against ratio_q R(t - D), threshold 256 T
-                    s_now = ternary_states(gain_compensated_change(p_now, p_then, k, ratio_q), 256 * T)
+                else:  # exposure gain: 256 R(t) against ratio_q R(t - D), threshold 256 T + 128
+                    s_now = ternary_states(gain_compensated_change(p_now, p_then, k, ratio_q),
+                                           prm.compensated_threshold(T))
                     if (k, d) == (prm.scales[0], 1):  # the exposure-step test's states
                         step_states = ternary_states(receptor_change(p_now, p_then, k), T)
             else:

@@ -12,8 +12,8 @@
  * stored as two bit planes (positive, negative) in the channel's ring slot. With
  * COMPENSATE (brightness compensation) and an exposure gain rho = rq / 256 between the
  * two frames (rq = round(256 B_t / B_(t-D)) of the frames' pixel sums, see
- * EngineParams.brightness_ratio_q), a channel compares 256 now - rq then with +-256 T in
- * 32-bit lanes instead (box sums from the tables for every k > 1: the difference table
+ * EngineParams.brightness_ratio_q), a channel compares 256 now - rq then with
+ * +-(256 T + 128) in 32-bit lanes instead (box sums from the tables for every k > 1: the difference table
  * holds now - then only); rq = 256, the usual case, takes the paths above unchanged.
  * Also counts nonzero states per channel, textured pixels and saturated pixels. */
 
@@ -87,7 +87,9 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
         __global const uchar *P_then = P + pos_mod(t - D, P_SLOTS) * P_SIZE;
         /* brightness compensation: the exposure gain over D frames, x256 (integral_rows) */
         const int rq = COMPENSATE ? (int)bright[BRIGHT_RATIO + c] : 256;
-        const int T256 = 256 * T;
+        /* the compensated change is not a whole number: > 256 T + 128 is the plain test
+         * (> T, i.e. >= T + 1) on it rounded to whole units (EngineParams.compensated_threshold) */
+        const int T256 = 256 * T + 128;
         /* words from i_edge on hold pixels past W - 1 - r; word 0 holds x < r */
         const int i_edge = (W - r) / 32;
         int changed = 0, step_changed = 0, brightening = 0;

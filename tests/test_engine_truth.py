@@ -176,6 +176,52 @@ def test_brightness_compensation_keeps_a_drifting_static_scene_static():
         assert s.quality > 0 and math.hypot(s.flow_x, s.flow_y) < 0.15
 
 
+def test_compensated_states_stay_near_the_steady_count_at_the_threshold_floor():
+    """A static, noisy scene at a quarter of the contrast, where the adaptive threshold
+    sits at its floor (θ = 1.5, T = 1 at scale 1), under a +20 % exposure drift: the
+    compensated slow channels light 2.1-3.7x the states of a steady exposure (the
+    compensated change is not a whole number, so its rounding noise is no longer the
+    same in both frames), not the 18-21x of the former threshold 256 T. That one let
+    through every compensated change between T and T + 1, which the plain test (> T on
+    whole numbers, i.e. >= T + 1) drops; drifting calibration flights then taught the
+    summary's table more fast codes at slow speeds than a steady camera shows."""
+    from emdflow.params import MODELS
+    from emdflow.reference import STAT_FIRST_CHANGED
+
+    changed = {}
+    for drift in (0.0, 0.2):
+        est = emdflow.FlowEstimator(W, H, **MODELS["extended"])
+        flight = CameraFlight("coffee", width=W, height=H, flow=(0.0, 0.0), noise_sigma=2.0, seed=1,
+                              contrast=0.25, exposure_drift=drift, drift_frames=20)
+        counts = []
+        for t in range(20):
+            field = est.update(flight.render(t))
+            if t >= 14:
+                assert est._engine.last_theta_q == est.params.threshold_q(est.params.threshold_min)
+                counts.append(field.stats[STAT_FIRST_CHANGED:STAT_FIRST_CHANGED + 3])
+        changed[drift] = np.mean(counts, axis=0)  # channels (1, 4), (1, 2), (1, 1)
+    assert changed[0.0].min() > 0
+    assert np.all(changed[0.2] < 5 * changed[0.0]), (changed[0.0], changed[0.2])
+
+
+@pytest.mark.parametrize("k", [1, 3, 5])
+def test_compensation_at_unit_gain_is_the_plain_test(k):
+    """With ρ = 256 (no gain) the compensated test, 256 ΔR > 256 T + 128, gives exactly the
+    plain states (ΔR > T): the two paths meet where the engine switches between them."""
+    from emdflow.params import EngineParams
+    from emdflow.reference import gain_compensated_change, receptor_change, ternary_states
+
+    rng = np.random.default_rng(k)
+    now = rng.integers(0, 256, (40, 50))
+    then = np.clip(now + rng.integers(-4 * k, 4 * k + 1, now.shape), 0, 255)
+    for T in (0, 1, 2, k * k, 3 * k * k):
+        plain = ternary_states(receptor_change(now, then, k), T)
+        compensated = ternary_states(gain_compensated_change(now, then, k, 256),
+                                     EngineParams.compensated_threshold(T))
+        assert np.array_equal(plain, compensated)
+        assert np.count_nonzero(plain) > 0
+
+
 @pytest.mark.parametrize("gain", [1.3, 0.7])
 def test_a_gain_step_is_caught_with_brightness_compensation(gain):
     """With brightness compensation a gain step is taken out of the states: the step test

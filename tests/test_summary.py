@@ -302,8 +302,9 @@ def test_extended_recovers_flow_from_model_histograms(flow, gradient, classes):
     speed = math.hypot(*flow)
     assert s.quality > 0 and not s.static
     # at 1/4 px/frame only the slowest channels fire and a histogram drawn from the table
-    # scatters by ±5 % from seed to seed (3-6 % here); from 1/2 px/frame on within 4 %
-    assert math.hypot(s.flow_x - flow[0], s.flow_y - flow[1]) / speed < (0.08 if speed < 0.3 else 0.05)
+    # scatters by ±5 % from seed to seed (1-6 % here); from 1/2 px/frame on mostly within
+    # 2 % (seeds 2-5), but 1/2 px/frame at the lowest contrast class 2-5 %
+    assert math.hypot(s.flow_x - flow[0], s.flow_y - flow[1]) / speed < (0.08 if speed < 0.3 else 0.06)
     # and not by the IoC fallback (no finite expected error): the likelihood fit is what
     # got it right, with a predicted error of the right size (per-class tables are
     # steeper at 1/2 px/frame and low contrast: up to ~0.21 there)
