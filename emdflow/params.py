@@ -154,7 +154,7 @@ class EngineParams:
         direction error falls with the number of sampled detections and the engine's
         time grows with it: at 320×240, every row (1) instead of every 4th takes the paper
         model's median direction error on random flights from 2.37° to 2.06° and the
-        extended model's from 1.91° to 1.65°, for ~0.35 ms more per frame (README,
+        extended model's from 1.81° to 1.66°, for ~0.35 ms more per frame (README,
         "Evidence density"). The detections themselves (``u``, ``v``) do not change, nor
         does the calibration table, which does not depend on the sampling.
     summary_evidence : bool

@@ -142,35 +142,35 @@ Median relative error, median direction error:
 ==========================================  ==============  ================
 set                                         all speeds      0.25 px/frame
 ==========================================  ==============  ================
-random directions                           7.1 %, 1.91°    9.6 %, 1.85°
-multiples of 45° + 0.3 rad                  7.2 %, 1.85°    9.1 %, 1.90°
-random, contrast × 0.25                     8.8 %, 2.22°    15.8 %, 3.05°
-random, exposure drift +20 % per flight     7.0 %, 1.85°    5.4 %, 1.60°
-random, exposure drift −20 % per flight     7.0 %, 1.93°    8.1 %, 1.64°
+random directions                           7.0 %, 1.81°    6.5 %, 1.82°
+multiples of 45° + 0.3 rad                  7.0 %, 1.82°    6.2 %, 1.90°
+random, contrast × 0.25                     8.5 %, 2.12°    10.7 %, 2.89°
+random, exposure drift +20 % per flight     7.3 %, 1.93°    6.4 %, 1.89°
+random, exposure drift −20 % per flight     7.2 %, 1.96°    10.4 %, 1.81°
 ==========================================  ==============  ================
 
-(IoC alone: 17.2 % / 5.8°, 20.2 % / 9.5°, 19.9 % / 5.2°, 16.9 % / 5.8°, 17.5 % / 5.7°.
-Measured after the brightness compensation became a gain (see
-:class:`emdflow.EngineParams`) and the table was re-fitted on flights collected with it;
-with the former offset compensation and its table: 7.1 % / 1.94°, 7.2 % / 1.87°,
-8.6 % / 2.17°, 8.1 % / 1.98°, 7.5 % / 2.02°, and 0.25 px/frame 8.1 %, 7.6 %, 11.6 %,
-9.5 %, 10.6 % — the drifting flights gained, slow motion without drift lost: at 0.25
-px/frame the new table reads gravel and brick ~0.88× (gravel 11 %, brick 13 %, grass 7 %,
-camera 7.5 %; at a quarter of the contrast brick 27 %).) 0.5–3 px/frame are within
-2.9–5.3 % and 1.0–1.7°; 5–7 px/frame 8–9.4 % / 1.6–2.9°, 9–11 px/frame 11 % / 3.7–3.8°,
-13 px/frame 15 % / 4.8° (without the scale-15 channel, as for the paper's model: 29–40 % /
-7–10°). Above 7 px/frame the error is brick's: its periodic pattern aliases (9–13 px/frame
-read 0.64–0.77×, 23–37 % off) while gravel, grass and camera stay within 7–14 %. Quality
-bands (random set): 192–255 → 5.3 % (90th percentile 11.4 %), 128–191 → 7.3 %, 64–127 →
-12.9 %, 1–63 → 19 %; rank correlation of quality with the error 0.42–0.49 across the five
-sets (without the misfit term 5.9 % (14.9 %), 7.6 %, 14 %, 28 % and 0.31–0.37). Cost ≈
+(IoC alone: 16.9 % / 5.8°, 20.3 % / 9.5°, 19.9 % / 5.2°, 17.0 % / 5.9°, 17.6 % / 5.7°.
+Measured with the compensation's threshold at 256 T + 128 (see
+:meth:`emdflow.EngineParams.compensated_threshold`) and the table collected through it;
+the former threshold 256 T and its table gave 7.1 % / 1.91°, 7.2 % / 1.85°,
+8.8 % / 2.22°, 7.0 % / 1.85°, 7.0 % / 1.93°, and 0.25 px/frame 9.6 %, 9.1 %, 15.8 %,
+5.4 %, 8.1 %: its drifting calibration flights carried too many fast codes at slow speeds,
+and steady flights read slow motion slow. README, "The summary".) 0.5–3 px/frame are
+within 4.1–5.5 % and 0.9–1.5°; 5–7 px/frame 8.0–9.2 % / 1.5–2.6°, 9–11 px/frame
+10–11 % / 3.5–3.7°, 13 px/frame 15 % / 5.1° (without the scale-15 channel, as for the
+paper's model: 29–40 % / 7–10°). Above 7 px/frame the error is brick's: its periodic
+pattern aliases (7–13 px/frame read 0.66–0.80×) while gravel, grass and camera read
+within 0.92–1.01×. Quality bands (random set): 192–255 → 5.5 % (90th percentile 11.2 %),
+128–191 → 6.7 %, 64–127 → 11.7 %, 1–63 → 20 %; rank correlation of quality with the
+error 0.39–0.46 across the five sets (without the misfit term 6.1 % (14.9 %), 6.7 %, 15 %,
+31 % and 0.28–0.36). Cost ≈
 0.55–0.6 ms per call back to back at 640×480 (plus ~0.025 ms for the deviance) and
 0.8–1.2 ms right after each frame's update, when the engine has evicted the table from the
 caches (``emdflow bench --stages --model extended``): the curves of up to four classes per
 row, ~2 000 nonzero counts, each a 240-entry table row, summed by one compiled sparse
 product (numpy's padded batched product took ~0.85 ms back to back). Without the classes
 (``EngineParams.gradient_classes=False``, which reads the table's all-classes distribution:
-8.3 % / 2.06°, 0.25 px/frame 10 %) it costs about as much as the paper model's summary.
+8.8 % / 2.10°, 0.25 px/frame 9.8 %) it costs about as much as the paper model's summary.
 
 References
 ----------

@@ -253,13 +253,15 @@ U_GRID = {"paper": (U_OFFSET, U_COUNT), "extended": (0.2, 48)}
 #: θ and the slow channels fire more cleanly. A third class without calibration flights
 #: over such ground was 6–7 points worse at 0.25 px/frame; with them (the ``fractal-…-60``
 #: sets) it read 0.25 px/frame within 7.6–11.6 % instead of 14–19 % (with the former offset
-#: brightness compensation; since the gain compensation 5.4–15.8 %, see ``emdflow.summary``).
+#: brightness compensation; with the gain compensation 5.4–15.8 %, and since its threshold
+#: is 256 T + 128, 6.2–10.7 %, see ``emdflow.summary``).
 #: The paper's model has a single class (its layout is unchanged).
 CONTRAST_EDGES = {"paper": (), "extended": (3.75, 12.0)}
 #: Per model, whether the table has one distribution per gradient-strength class of the
 #: detections (``emdflow.params.GRADIENT_CLASS_STEPS``). For the extended model they take
 #: much of the texture out of its slow channels' code mixture (random directions, both
-#: tables fitted on the same flights: 8.3 % / 2.06° → 7.1 % / 1.91°, 0.25 px/frame 10 % →
+#: tables fitted on the same flights: 8.8 % / 2.10° → 7.0 % / 1.81°, 0.25 px/frame 9.8 % →
+#: 6.5 %; with the compensation's former threshold 8.3 % / 2.06° → 7.1 % / 1.91°, 10 % →
 #: 9.6 %; with the former offset brightness compensation 8.3 % / 2.14° → 7.1 % / 1.94°,
 #: 10 % → 8 %; before the rough-ground flights and the third contrast class 8.9 % / 2.21° →
 #: 8.2 % / 1.95°, 24 % → 16 %); for the paper's model they gained little (8.9 % / 2.37° →
