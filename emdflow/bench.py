@@ -110,9 +110,9 @@ def run_benchmark(*, sizes=SIZES, block: int = 50, rounds: int = 7, numpy_block:
     """Time every method; returns ``{(w, h): {method: median ms/frame}}``, plus
     ``"dis_per_opencl_paired"`` (and ``"dis_per_dense_paired"``): the median over the
     rounds of each round's DIS / OpenCL (DIS / dense-only) time ratio (less sensitive than
-    the ratio of the medians to load that comes and goes between rounds). Each block but the numpy reference's (100 ms frames) starts with
-    ``warmup`` untimed frames (the frames just before the block's, so the engines' history
-    runs on without a jump)."""
+    the ratio of the medians to load that comes and goes between rounds). Each block but
+    the numpy reference's (100 ms frames) starts with ``warmup`` untimed frames (the frames
+    just before the block's, so the engines' history runs on without a jump)."""
     results = {}
     for width, height in sizes:
         frames = _frames(width, height, frames_per_size)

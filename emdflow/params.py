@@ -162,8 +162,9 @@ class EngineParams:
         orientation and position histograms that :func:`emdflow.summarize` and
         :func:`emdflow.cues.looming_cues` read. False gives the dense field (``u``, ``v``)
         and the frame's counters only, 16–20 % faster at 640×480 (README, "Speed"), for a
-        caller that never summarises (a researcher's dense flow, flow videos); those two
-        functions then refuse the field. The detections do not change.
+        caller that never summarises (a researcher's dense flow); those two functions then
+        refuse the field, and so do the command-line tools, which summarise every frame.
+        The detections do not change.
     """
 
     scales: tuple[int, ...] = (1, 3, 5, 7, 9, 11, 13)

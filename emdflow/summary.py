@@ -163,12 +163,12 @@ pattern aliases (7–13 px/frame read 0.66–0.80×) while gravel, grass and cam
 within 0.92–1.01×. Quality bands (random set): 192–255 → 5.5 % (90th percentile 11.2 %),
 128–191 → 6.7 %, 64–127 → 11.7 %, 1–63 → 20 %; rank correlation of quality with the
 error 0.39–0.46 across the five sets (without the misfit term 6.1 % (14.9 %), 6.7 %, 15 %,
-31 % and 0.28–0.36). Cost ≈
-0.55–0.6 ms per call back to back at 640×480 (plus ~0.025 ms for the deviance) and
-0.8–1.2 ms right after each frame's update, when the engine has evicted the table from the
-caches (``emdflow bench --stages --model extended``): the curves of up to four classes per
-row, ~2 000 nonzero counts, each a 240-entry table row, summed by one compiled sparse
-product (numpy's padded batched product took ~0.85 ms back to back). Without the classes
+31 % and 0.28–0.36). Cost ≈ 0.55–0.6 ms per call back to back at 640×480 (plus ~0.025 ms
+for the deviance) and 0.8–1.2 ms right after each frame's update, when the engine has
+evicted the table from the caches (``emdflow bench --stages --model extended``): the
+curves of up to four classes per row, ~2 000 nonzero counts, each a 240-entry table row,
+summed by one compiled sparse product (numpy's padded batched product took ~0.85 ms back
+to back). Without the classes
 (``EngineParams.gradient_classes=False``, which reads the table's all-classes distribution:
 8.8 % / 2.10°, 0.25 px/frame 9.8 %) it costs about as much as the paper model's summary.
 
