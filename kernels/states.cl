@@ -13,8 +13,9 @@
  * COMPENSATE (brightness compensation) and an exposure gain rho = rq / 256 between the
  * two frames (rq = round(256 B_t / B_(t-D)) of the frames' pixel sums, see
  * EngineParams.brightness_ratio_q), a channel compares 256 now - rq then with
- * +-(256 T + 128) in 32-bit lanes instead (box sums from the tables for every k > 1: the difference table
- * holds now - then only); rq = 256, the usual case, takes the paths above unchanged.
+ * +-(256 T + 128) in 32-bit lanes instead (box sums from the tables for every k > 1: the
+ * difference table holds now - then only); rq = 256, the usual case, takes the paths above
+ * unchanged.
  * Also counts nonzero states per channel, textured pixels and saturated pixels. */
 
 inline ushort16 box16(__global const ushort *S, int y, int x, int r)

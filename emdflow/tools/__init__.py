@@ -140,10 +140,9 @@ def make_estimator(args, width: int, height: int):
     from emdflow import FlowEstimator
 
     kw = engine_kwargs(args)
-    if kw.get("summary_evidence", True) is not True:
-        # every tool summarises each frame
-        raise ToolError(f"engine options: summary_evidence={kw['summary_evidence']!r}: these tools "
-                        "summarise every frame and need the summary's evidence", 2)
+    if kw.get("summary_evidence") is False:  # (other values: FlowEstimator's own error)
+        raise ToolError("engine options: summary_evidence=False: these tools summarise every "
+                        "frame and need the summary's evidence", 2)
     backend = getattr(args, "backend", "opencl")
     try:
         return FlowEstimator(int(width), int(height), backend=backend, **kw)

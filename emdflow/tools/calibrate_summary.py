@@ -800,13 +800,10 @@ def main(argv=None):
         if bad:
             ap.error(f"--textures: {', '.join(sorted(bad))} belong to the evaluation set")
         try:
-            lo_hi = a.noise_range.split(",")
-            if len(lo_hi) != 2:
-                raise ValueError
-            noise_range = _checked_noise(*lo_hi, f"--noise-range {a.noise_range!r} (needs lo <= hi)")
-        except ValueError as exc:
-            ap.error(str(exc) if str(exc).startswith("--") else
-                     f"--noise-range {a.noise_range!r}: expected lo,hi with 0 <= lo <= hi (gray levels)")
+            lo, hi = a.noise_range.split(",")  # ValueError unless two fields
+            noise_range = _checked_noise(lo, hi, "--noise-range")
+        except ValueError:
+            ap.error(f"--noise-range {a.noise_range!r}: expected lo,hi with 0 <= lo <= hi (gray levels)")
         collect(a.flights, a.out, a.frames, a.seed, textures=tuple(a.textures.split(",")),
                 backend=a.backend,
                 scale_range=tuple(float(x) for x in a.scale_range.split(",")), model=a.model,
