@@ -45,12 +45,18 @@ __all__ = ["main", "profile_stages", "run_benchmark"]
 SIZES = ((320, 240), (640, 480))
 
 
-def _frames(width: int, height: int, count: int, drift: float = 0.0) -> list[np.ndarray]:
-    """A camera flight over gravel; with ``drift`` an exposure ramp of that relative size
-    across the clip (every frame then has a gain for the brightness compensation)."""
+#: The ground of the benchmark's flight (``--texture``).
+DEFAULT_TEXTURE = "gravel"
+
+
+def _frames(width: int, height: int, count: int, drift: float = 0.0,
+            texture: str = DEFAULT_TEXTURE) -> list[np.ndarray]:
+    """A camera flight over ``texture`` (gravel unless told; see
+    :func:`emdflow.synthetic.load_texture`); with ``drift`` an exposure ramp of that relative
+    size across the clip (every frame then has a gain for the brightness compensation)."""
     from .synthetic import CameraFlight
 
-    flight = CameraFlight("gravel", width=width, height=height, flow=(2.3, -1.6), supersample=2, seed=1,
+    flight = CameraFlight(texture, width=width, height=height, flow=(2.3, -1.6), supersample=2, seed=1,
                           exposure_drift=drift, drift_frames=count)
     return [flight.render(t) for t in range(count)]
 
@@ -106,7 +112,8 @@ def alternating_blocks(methods: dict, n_frames: int, *, rounds: int, block: int,
 
 
 def run_benchmark(*, sizes=SIZES, block: int = 50, rounds: int = 7, numpy_block: int = 3,
-                  frames_per_size: int = 40, backend_kwargs=None, progress=None, warmup: int = 2) -> dict:
+                  frames_per_size: int = 40, backend_kwargs=None, progress=None, warmup: int = 2,
+                  texture: str = DEFAULT_TEXTURE) -> dict:
     """Time every method; returns ``{(w, h): {method: median ms/frame}}``, plus
     ``"dis_per_opencl_paired"`` (and ``"dis_per_dense_paired"``): the median over the
     rounds of each round's DIS / OpenCL (DIS / dense-only) time ratio (less sensitive than
@@ -115,7 +122,7 @@ def run_benchmark(*, sizes=SIZES, block: int = 50, rounds: int = 7, numpy_block:
     just before the block's, so the engines' history runs on without a jump)."""
     results = {}
     for width, height in sizes:
-        frames = _frames(width, height, frames_per_size)
+        frames = _frames(width, height, frames_per_size, texture=texture)
         methods = _methods(width, height, frames, backend_kwargs=backend_kwargs)
         for fn in methods.values():  # warm up: kernel builds, caches, history
             for i in range(4):
@@ -177,7 +184,7 @@ def write_plot(results: dict, path: str) -> None:
 
 
 def profile_stages(width: int, height: int, *, frames: int = 200, backend_kwargs=None,
-                   drift: float = 0.0) -> dict:
+                   drift: float = 0.0, texture: str = DEFAULT_TEXTURE) -> dict:
     """Device time of each command of a frame (OpenCL profiling events), median ms.
 
     The engine runs on a profiling queue over a camera flight; ``"wall"`` is the host's
@@ -192,7 +199,7 @@ def profile_stages(width: int, height: int, *, frames: int = 200, backend_kwargs
     from .opencl_backend import OpenCLEngine
     from .params import EngineParams
 
-    clip = _frames(width, height, 40, drift)
+    clip = _frames(width, height, 40, drift, texture)
     engine = OpenCLEngine(width, height, EngineParams(**(backend_kwargs or {})))
     engine.queue = cl.CommandQueue(engine.ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
     for i in range(10):
@@ -291,7 +298,18 @@ def main(argv=None) -> int:
     parser.add_argument("--drift", type=float, default=0.0,
                         help="with --stages: an exposure drift of this relative size across the "
                              "40-frame clip (the brightness compensation's slower path)")
+    parser.add_argument("--texture", default=DEFAULT_TEXTURE,
+                        help="ground of the flight: a bundled photograph (emdflow.synthetic.TEXTURES), "
+                             "fractal-<beta>-<seed> or an image file (default: %(default)s; over "
+                             "large bright and dark regions the motion alone changes the frame's "
+                             "brightness, which the extended model's compensation then takes out)")
     args = parser.parse_args(argv)
+    from .synthetic import load_texture
+
+    try:
+        load_texture(args.texture)
+    except ValueError as exc:
+        parser.error(f"--texture: {exc}")
     try:
         sizes = [tuple(int(v) for v in s.lower().split("x")) for s in args.sizes.split(",")]
     except ValueError:
@@ -303,16 +321,18 @@ def main(argv=None) -> int:
         kwargs["evidence_row_step"] = args.evidence_row_step
     print(f"# emdflow bench — {_environment()}; model: {args.model}"
           + (f", delays {kwargs['delays']}" if args.delays is not None else "")
-          + (f", evidence every {args.evidence_row_step} row(s)" if args.evidence_row_step else ""),
+          + (f", evidence every {args.evidence_row_step} row(s)" if args.evidence_row_step else "")
+          + f"; flight over {args.texture}",
           flush=True)
     if args.stages:
         for width, height in sizes:
-            stages = profile_stages(width, height, backend_kwargs=kwargs, drift=args.drift)
+            stages = profile_stages(width, height, backend_kwargs=kwargs, drift=args.drift,
+                                    texture=args.texture)
             cells = " | ".join(f"{name} {ms:.3f}" for name, ms in stages.items())
             print(f"{width}x{height} (median ms per frame): {cells}")
         return 0
     results = run_benchmark(sizes=sizes, block=args.block, rounds=args.rounds, warmup=args.warmup,
-                            backend_kwargs=kwargs,
+                            backend_kwargs=kwargs, texture=args.texture,
                             progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
     print(format_table(results))
     if args.plot:

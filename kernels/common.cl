@@ -124,9 +124,9 @@ inline uint pack16(short16 mask)
 }
 #endif
 /* ---- states/prefilter helpers ---- */
-/* Unsigned saturating subtraction and a 32-lane mask pack. On x86 with AVX2 these are
- * vpsubusw and vpacksswb + vpermq + vpmovmskb (one pack for both 16-lane halves); the
- * portable versions use selects and pack16. */
+/* Unsigned saturating subtraction and addition and a 32-lane mask pack. On x86 with AVX2
+ * these are vpsubusw, vpaddusw and vpacksswb + vpermq + vpmovmskb (one pack for both
+ * 16-lane halves); the portable versions use selects and pack16. */
 #if defined(EMD_X86_BUILTINS) && defined(__AVX2__)
 typedef short emd_v16hi __attribute__((__vector_size__(32)));
 typedef char emd_v32qi __attribute__((__vector_size__(32)));
@@ -147,6 +147,11 @@ inline ushort16 subs_u16(ushort16 a, ushort16 b)
     return __builtin_astype(__builtin_ia32_psubusw256(__builtin_astype(a, emd_v16hi),
                                                       __builtin_astype(b, emd_v16hi)), ushort16);
 }
+inline ushort16 adds_u16(ushort16 a, ushort16 b)
+{
+    return __builtin_astype(__builtin_ia32_paddusw256(__builtin_astype(a, emd_v16hi),
+                                                      __builtin_astype(b, emd_v16hi)), ushort16);
+}
 /* bit l of the result = lane l of lo, bit 16 + l = lane l of hi (masks all-ones = true) */
 inline uint pack32(short16 lo, short16 hi)
 {
@@ -158,6 +163,7 @@ inline uint pack32(short16 lo, short16 hi)
 }
 #else
 inline ushort16 subs_u16(ushort16 a, ushort16 b) { return a > b ? a - b : (ushort16)(0); }
+inline ushort16 adds_u16(ushort16 a, ushort16 b) { return a + b < a ? (ushort16)(65535) : a + b; }
 inline uint pack32(short16 lo, short16 hi) { return pack16(lo) | (pack16(hi) << 16); }
 inline uint exceeds32(__global const uchar *now, __global const uchar *then, uchar T)
 {

@@ -13,9 +13,12 @@
  * COMPENSATE (brightness compensation) and an exposure gain rho = rq / 256 between the
  * two frames (rq = round(256 B_t / B_(t-D)) of the frames' pixel sums, see
  * EngineParams.brightness_ratio_q), a channel compares 256 now - rq then with
- * +-(256 T + 128) in 32-bit lanes instead (box sums from the tables for every k > 1: the
- * difference table holds now - then only); rq = 256, the usual case, takes the paths above
- * unchanged.
+ * +-(256 T + 128) instead (box sums from the tables for every k > 1: the difference table
+ * holds now - then only): for a gain within +-50 % in 16-bit lanes (gain16_short, and
+ * gain16_wide for k = 13, 15), otherwise in 32-bit lanes; rq = 256, the usual case, takes the paths above unchanged. A
+ * moving camera changes the frame's brightness too (content enters and leaves the view:
+ * over the camera photograph at 2-3 px/frame every frame has rq != 256), so the
+ * compensated path is a common one, not only an exposure drift's.
  * Also counts nonzero states per channel, textured pixels and saturated pixels. */
 
 inline ushort16 box16(__global const ushort *S, int y, int x, int r)
@@ -35,6 +38,55 @@ inline void gain16(int8 now_lo, int8 now_hi, int8 then_lo, int8 then_hi, int rq,
     const int8 g_lo = (now_lo << 8) - rq * then_lo, g_hi = (now_hi << 8) - rq * then_hi;
     *p = pack16((short16)(convert_short8(g_lo > T256), convert_short8(g_hi > T256)));
     *n = pack16((short16)(convert_short8(g_lo < -T256), convert_short8(g_hi < -T256)));
+}
+
+/* The same test in 16-bit lanes, 16 pixels, for box sums below 2^15 (k <= 11) and
+ * |delta| < 128, delta = rq - 256: with d = now - then, 256 now - rq then = 256 d - delta
+ * then, and with then = 256 h + l (h <= 120, l <= 255), delta then = 256 delta h + delta l.
+ * d and T are whole numbers, so 256 d - delta then > 256 T + 128 <=> d > T + delta h +
+ * floor((delta l + 128) / 256), and < -(256 T + 128) <=> -d > T - delta h + floor((128 -
+ * delta l) / 256): the same bits as gain16, exactly. |delta h| <= 15240, |delta l| <= 32385
+ * and T <= 16000 (checked by the caller): no term leaves 16 bits. */
+inline void gain16_short(short16 d, ushort16 then, short delta, short T, short16 *p, short16 *n)
+{
+    const short16 h = as_short16(then >> (ushort)8), l = as_short16(then & (ushort)255);
+    const short16 dh = h * delta, dl = l * delta;
+    *p = d > (T + dh + ((dl + (short)128) >> (short)8));
+    *n = -d > (T - dh + (((short)128 - dl) >> (short)8));
+}
+
+/* now > then + t for 16 lanes of box sums below 2^16 and |t| < 2^15, without the 17 bits
+ * now - then may need (k = 13, 15): sat(now - t) > then where t >= 0 (if now < t, both
+ * sides are false), sat(now + |t|) > then where t < 0 (a saturated sum, 65535, exceeds
+ * then as the exact one does) */
+inline short16 above_shifted(ushort16 now, ushort16 then, short16 t)
+{
+    const short16 neg = t >> (short)15;
+    const ushort16 mag = as_ushort16((t ^ neg) - neg), m = as_ushort16(neg);
+    const ushort16 lhs = (subs_u16(now, mag) & ~m) | (adds_u16(now, mag) & m);
+    return as_short16(lhs > then);
+}
+
+/* gain16_short's test for k = 13, 15: box sums below 2^16 (then = 256 h + l, h <= 224:
+ * |delta h| <= 28448) and T <= 4000 (checked by the caller), so the shifted thresholds
+ * stay within 16 bits; the comparison goes through above_shifted */
+inline void gain16_wide(ushort16 now, ushort16 then, short delta, short T, short16 *p, short16 *n)
+{
+    const short16 h = as_short16(then >> (ushort)8), l = as_short16(then & (ushort)255);
+    const short16 dh = h * delta, dl = l * delta;
+    *p = above_shifted(now, then, T + dh + ((dl + (short)128) >> (short)8));
+    *n = above_shifted(then, now, T - dh + (((short)128 - dl) >> (short)8));
+}
+
+/* gain16_short for 32 pixels (d0, then0: the first 16) */
+inline void gain32_short(short16 d0, ushort16 then0, short16 d1, ushort16 then1, int rq, int T,
+                         uint *pw, uint *nw)
+{
+    short16 p0, n0, p1, n1;
+    gain16_short(d0, then0, (short)(rq - 256), (short)T, &p0, &n0);
+    gain16_short(d1, then1, (short)(rq - 256), (short)T, &p1, &n1);
+    *pw = pack32(p0, p1);
+    *nw = pack32(n0, n1);
 }
 
 /* gain16 for 32 pixels from two 16-lane halves */
@@ -91,6 +143,8 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
         /* the compensated change is not a whole number: > 256 T + 128 is the plain test
          * (> T, i.e. >= T + 1) on it rounded to whole units (EngineParams.compensated_threshold) */
         const int T256 = 256 * T + 128;
+        /* the gain's test fits 16-bit lanes (gain16_short) */
+        const bool short_gain = rq > 128 && rq < 384 && T <= (k <= 11 ? 16000 : 4000);
         /* words from i_edge on hold pixels past W - 1 - r; word 0 holds x < r */
         const int i_edge = (W - r) / 32;
         int changed = 0, step_changed = 0, brightening = 0;
@@ -129,6 +183,21 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
             if (rq == 256) {
                 pw = upw;
                 nw = unw;
+            } else if (short_gain && k == 1) {
+                const ushort16 then0 = convert_ushort16(LOAD_UC16(pt)), then1 = convert_ushort16(LOAD_UC16(pt + 16));
+                gain32_short(as_short16(convert_ushort16(LOAD_UC16(pn)) - then0), then0,
+                             as_short16(convert_ushort16(LOAD_UC16(pn + 16)) - then1), then1, rq, T, &pw, &nw);
+            } else if (short_gain && k <= 11) {
+                const ushort16 then0 = box16(S_then, y, x, r), then1 = box16(S_then, y, x + 16, r);
+                gain32_short(as_short16(box16(S_now, y, x, r) - then0), then0,
+                             as_short16(box16(S_now, y, x + 16, r) - then1), then1, rq, T, &pw, &nw);
+            } else if (short_gain) {
+                short16 p0, n0, p1, n1;
+                gain16_wide(box16(S_now, y, x, r), box16(S_then, y, x, r), (short)(rq - 256), (short)T, &p0, &n0);
+                gain16_wide(box16(S_now, y, x + 16, r), box16(S_then, y, x + 16, r), (short)(rq - 256), (short)T,
+                            &p1, &n1);
+                pw = pack32(p0, p1);
+                nw = pack32(n0, n1);
             } else if (k == 1) {
                 gain32(convert_ushort16(LOAD_UC16(pn)), convert_ushort16(LOAD_UC16(pt)),
                        convert_ushort16(LOAD_UC16(pn + 16)), convert_ushort16(LOAD_UC16(pt + 16)),

@@ -146,10 +146,12 @@ def test_dense_only_engine_gives_the_same_field_and_counters(model):
 @pytest.mark.parametrize("size,model", [((89, 67), "extended"), ((75, 301), "extended"),
                                         ((89, 67), "finest-scale-3")])
 def test_brightness_compensation_is_exact(monkeypatch, size, model, portable):
-    """An exposure drift, a small step and a large one, every channel with and without an
-    exposure gain to compensate: the same states and output. 301 rows: the prefilter's
-    strip sums cross its 256-row flush of the wrapping column sums. ``finest-scale-3``:
-    the exposure-step test's uncompensated states then come from box sums."""
+    """An exposure drift, a small step, a large one and a gain of 0.45, every channel with
+    and without an exposure gain to compensate: the same states and output. The kernel
+    tests gains within ±50 % in 16-bit lanes (up to k = 11) and larger ones in 32-bit
+    lanes; both occur. 301 rows: the prefilter's strip sums cross its 256-row flush of the
+    wrapping column sums. ``finest-scale-3``: the exposure-step test's uncompensated
+    states then come from box sums."""
     if portable:
         monkeypatch.setenv(opencl_backend.PORTABLE_ENV, "1")
     width, height = size
@@ -158,15 +160,18 @@ def test_brightness_compensation_is_exact(monkeypatch, size, model, portable):
     assert params.brightness_compensation
     flight = CameraFlight("gravel", width=width, height=height, flow=(0.4, -0.3), noise_sigma=2, seed=8)
     frames = []
-    for t in range(20):  # steady exposure, then a 2.5 %/frame drift, and two steps
+    for t in range(22):  # steady exposure, a 2.5 %/frame drift, two steps, a gain of 0.45
         gain = 1.0 - 0.025 * max(0, t - 8)
         frame = flight.render(t) * gain + (4 if t >= 15 else 0) + (40 if t >= 18 else 0)
+        frame *= 0.45 if t >= 20 else 1.0
         frames.append(np.clip(np.rint(frame), 0, 255).astype(np.uint8))
-    # the gains the channels see: within ±0.2 % of 1 (no compensation) and far from it
+    # the gains the channels see: within ±0.2 % of 1 (no compensation), within ±50 % and
+    # beyond (the kernel's 16-bit and 32-bit paths)
     sums = [int(prefilter(f, params.weights).sum()) for f in frames]
-    ratios = [params.brightness_ratio_q(sums[t], sums[t - d]) for t in range(4, 20) for d in params.delays]
+    ratios = [params.brightness_ratio_q(sums[t], sums[t - d]) for t in range(4, 22) for d in params.delays]
     need = 10 if model == "extended" else 5  # (two delays instead of three)
-    assert ratios.count(256) > need and len(set(ratios) - {256}) > need
+    assert ratios.count(256) > need and len({q for q in ratios if 128 < q < 384} - {256}) > need
+    assert sum(not 128 < q < 384 for q in ratios) >= 2
     assert _compare(width, height, frames, params) > 0
 
 

@@ -310,7 +310,7 @@ def test_bench_ratios_of_medians_and_per_round(monkeypatch):
         return {name: make(name) for name in order}
 
     monkeypatch.setattr(bench, "_methods", methods)
-    monkeypatch.setattr(bench, "_frames", lambda w, h, n: [None] * n)
+    monkeypatch.setattr(bench, "_frames", lambda w, h, n, **kw: [None] * n)
     monkeypatch.setattr(bench.time, "perf_counter", lambda: state["t"])
     results = bench.run_benchmark(sizes=((64, 48),), block=4, rounds=5,
                                   progress=lambda m: state.update(round=state["round"] + 1))
@@ -342,7 +342,7 @@ def test_bench_blocks_start_with_untimed_frames(monkeypatch):
         return {name: make(name) for name in ["opencl", "opencl-dense", "opencl+summary", "numpy", "dis", "blur"]}
 
     monkeypatch.setattr(bench, "_methods", methods)
-    monkeypatch.setattr(bench, "_frames", lambda w, h, n: [None] * n)
+    monkeypatch.setattr(bench, "_frames", lambda w, h, n, **kw: [None] * n)
     monkeypatch.setattr(bench.time, "perf_counter", lambda: state["t"])
     steady = bench.run_benchmark(sizes=((64, 48),), block=4, rounds=3)[(64, 48)]
     assert steady["opencl"] == pytest.approx(1.0) and steady["dis"] == pytest.approx(1.0)
@@ -369,6 +369,34 @@ def test_bench_stages_drift_gives_every_frame_a_gain_to_compensate():
         gains = [params.brightness_ratio_q(sums[t], sums[t - d]) for t in range(d, 40)]
         compensated = sum(g != 256 for g in gains)
         assert compensated == len(gains) if drift else compensated < len(gains) // 4, (drift, gains)
+
+
+def test_bench_texture_option_flies_over_other_ground(monkeypatch, capsys):
+    """``--texture NAME`` flies the benchmark over another ground (a bundled photograph,
+    a fractal texture or an image file); an unknown name is a usage error naming it. Over
+    the camera photograph, whose large bright and dark regions enter and leave the view,
+    the motion alone changes the frame's brightness: the extended model's compensation
+    sees a gain in most frames even at the one-frame delay, where gravel shows none."""
+    from emdflow import bench
+    from emdflow.params import MODELS, EngineParams
+    from emdflow.reference import prefilter
+
+    params = EngineParams(**MODELS["extended"])
+    shares = {}
+    for texture in ("gravel", "camera"):
+        sums = [int(prefilter(f, params.weights).sum()) for f in bench._frames(640, 480, 40, texture=texture)]
+        shares[texture] = np.mean([params.brightness_ratio_q(sums[t], sums[t - 1]) != 256 for t in range(1, 40)])
+    assert shares["gravel"] < 0.1 and shares["camera"] > 0.9, shares
+    seen = []
+    real = bench.profile_stages
+    monkeypatch.setattr(bench, "profile_stages",
+                        lambda w, h, **kw: seen.append(kw["texture"]) or real(w, h, frames=5, **kw))
+    pytest.importorskip("pyopencl")
+    assert bench.main(["--stages", "--sizes", "48x40", "--texture", "camera"]) == 0
+    assert seen == ["camera"] and "flight over camera" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        bench.main(["--stages", "--texture", "no-such-ground"])
+    assert "--texture" in capsys.readouterr().err
 
 
 def test_engine_ab_times_another_checkout_in_the_same_process(capsys):
@@ -409,6 +437,12 @@ def test_engine_ab_other_option_times_an_option_against_the_default(capsys):
         engine_ab.main([root, "--other-option", "evidence_row_step"])
     assert engine_ab.main([root, "--size", "64x48", "--other-option", "evidence_row_step=-3"]) == 2
     assert "evidence_row_step" in capsys.readouterr().err
+    # over another ground, with an exposure ramp
+    assert engine_ab.main([root, "--size", "64x48", "--rounds", "2", "--block", "3", "--model", "extended",
+                           "--texture", "camera", "--drift", "0.3"]) == 0
+    assert "over camera, drift +0.3" in capsys.readouterr().out
+    assert engine_ab.main([root, "--size", "64x48", "--texture", "no-such-ground"]) == 2
+    assert "no-such-ground" in capsys.readouterr().err
 
 
 def test_bench_model_option_runs_the_daemons_model(monkeypatch, capsys):

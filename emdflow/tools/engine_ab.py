@@ -14,6 +14,11 @@ are noise::
     python -m emdflow.tools.engine_ab /tmp/before                       # paper, 640x480
     python -m emdflow.tools.engine_ab /tmp/before --model extended --size 320x240
 
+``--texture NAME`` flies over another ground (gravel unless told) and ``--drift X`` adds an
+exposure ramp of that relative size across the clip: over a photograph with large bright
+and dark regions (``--texture camera``) the motion alone changes the frame's brightness, so
+the extended model's brightness compensation runs in most frames, as under a drift.
+
 ``--other-option KEY=VALUE`` passes an estimator keyword to the other engine only, so the
 same checkout times the cost of an option::
 
@@ -59,14 +64,16 @@ def load_checkout(root: Path, name: str = "emdflow_other"):
 
 
 def compare(other, width: int, height: int, model: str = "paper", rounds: int = 12, block: int = 50,
-            warmup: int = 2, other_options: dict | None = None) -> dict:
+            warmup: int = 2, other_options: dict | None = None, texture: str = "gravel",
+            drift: float = 0.0) -> dict:
     """Alternating blocks of ``other.FlowEstimator`` (with ``other_options`` on top of the
-    model's) and this checkout's on one camera flight; returns the per-round ms/frame of
-    both and the median paired ratio."""
+    model's) and this checkout's on one camera flight (over ``texture``, with an exposure
+    ramp of ``drift``); returns the per-round ms/frame of both and the median paired
+    ratio."""
     import emdflow
     from emdflow.bench import _frames, alternating_blocks
 
-    frames = _frames(width, height, 40)
+    frames = _frames(width, height, 40, drift, texture)
     engines = {"other": other.FlowEstimator(width, height, **{**MODELS[model], **(other_options or {})}),
                "this": emdflow.FlowEstimator(width, height, **MODELS[model])}
     for est in engines.values():
@@ -88,6 +95,9 @@ def main(argv=None) -> int:
     ap.add_argument("--other-option", action="append", default=[], metavar="KEY=VALUE",
                     help="estimator keyword for the other engine only (repeatable), e.g. "
                          "evidence_row_step=1")
+    ap.add_argument("--texture", default="gravel", help="ground of the flight (default: %(default)s)")
+    ap.add_argument("--drift", type=float, default=0.0,
+                    help="exposure ramp of this relative size across the 40-frame clip")
     a = ap.parse_args(argv)
     options = {}
     for item in a.other_option:
@@ -106,12 +116,14 @@ def main(argv=None) -> int:
         ap.error(f"--{exc}")
     try:
         other = load_checkout(a.checkout.resolve())
-        r = compare(other, width, height, a.model, a.rounds, a.block, other_options=options)
+        r = compare(other, width, height, a.model, a.rounds, a.block, other_options=options,
+                    texture=a.texture, drift=a.drift)
     except (ToolError, TypeError, ValueError) as exc:
         print(f"engine_ab: {exc}", file=sys.stderr)
         return 2
     label = "".join(f" {k}={v!r}" for k, v in options.items())
-    print(f"{a.model} {width}x{height}: other{label} {statistics.median(r['other']):.3f} ms, "
+    ground = a.texture + (f", drift {a.drift:+g}" if a.drift else "")
+    print(f"{a.model} {width}x{height} over {ground}: other{label} {statistics.median(r['other']):.3f} ms, "
           f"this {statistics.median(r['this']):.3f} ms per frame; other / this per round "
           f"(median of {a.rounds}): {r['ratio']:.3f}")
     print("  rounds other:", " ".join(f"{x:.2f}" for x in r["other"]))
