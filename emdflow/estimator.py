@@ -6,11 +6,15 @@ import numpy as np
 
 from .field import FlowField
 from .params import EngineParams
-from .reference import STAT_BRIGHTENING, STAT_STEP_CHANGED, ReferenceEngine
+from .reference import (STAT_BRIGHTENING, STAT_STEP_CHANGED, STAT_U_DETECTIONS, STAT_V_DETECTIONS,
+                        ReferenceEngine)
 
 __all__ = ["FlowEstimator", "BACKENDS"]
 
 BACKENDS = ("opencl", "numpy")
+#: Largest frame (pixels): the kernels' 32-bit sums (the frame's brightness for the
+#: compensation, 255 per pixel; each counter copy's contrast sum) stay exact up to it.
+MAX_PIXELS = 1 << 24
 
 #: A frame where at least this share of the finest receptors changed, and nearly all the
 #: same way (brightening share above 1 - POLARITY or below POLARITY), is a global
@@ -18,6 +22,28 @@ BACKENDS = ("opencl", "numpy")
 #: test reads the states that channel would have without it.
 STEP_CHANGED = 0.2
 STEP_POLARITY = 0.1
+
+
+def _empty_output(height: int, width: int, stats, hist, positions):
+    """The output of a frame before the history is full: no codes, no detections counted
+    or binned (the frame's other counters, texture and changed states, stay)."""
+    stats = stats.copy()
+    stats[STAT_U_DETECTIONS] = stats[STAT_V_DETECTIONS] = 0
+    codes = np.zeros((height, width), np.int8)
+    empty = None if hist is None else np.zeros_like(hist)
+    return _Unpacked(codes, codes.copy()), stats, empty, None if positions is None else np.zeros_like(positions)
+
+
+class _Unpacked:
+    """Codes already unpacked, behind the ``decode()`` the field calls on first access."""
+
+    __slots__ = ("codes",)
+
+    def __init__(self, u_code, v_code):
+        self.codes = (u_code, v_code)
+
+    def decode(self):
+        return self.codes
 
 
 def _is_brightness_step(stats, pixels: int) -> bool:
@@ -122,22 +148,26 @@ class FlowEstimator:
                 raise ValueError(f"{name} must be an integer number of pixels, got {value!r}")
         if width < 3 or height < 3:
             raise ValueError(f"frame size {width}x{height}: both sides must be at least 3 px")
+        if width * height > MAX_PIXELS:
+            raise ValueError(f"frame size {width}x{height}: at most {MAX_PIXELS} pixels (e.g. 4096x4096) "
+                             "are supported")
         if backend not in BACKENDS:
             raise ValueError(f"backend={backend!r}: expected one of {', '.join(BACKENDS)}")
         self.width, self.height, self.backend = int(width), int(height), backend
+        # (EngineParams checks every value's type and range: no silent conversion here)
         self.params = EngineParams(
-            scales=tuple(scales),
-            threshold=float(threshold),
-            prefilter_size=int(prefilter_size),
-            sharp_templates=bool(sharp_templates),
-            delays=tuple(delays),
-            delay_scales=tuple(delay_scales),
+            scales=scales,
+            threshold=threshold,
+            prefilter_size=prefilter_size,
+            sharp_templates=sharp_templates,
+            delays=delays,
+            delay_scales=delay_scales,
             threshold_mode=threshold_mode,
             adaptive_gain=adaptive_gain,
             threshold_min=threshold_min,
             threshold_max=threshold_max,
-            brightness_compensation=bool(brightness_compensation),
-            gradient_classes=bool(gradient_classes),
+            brightness_compensation=brightness_compensation,
+            gradient_classes=gradient_classes,
             evidence_row_step=evidence_row_step,
             summary_evidence=summary_evidence,
         )
@@ -183,6 +213,12 @@ class FlowEstimator:
         # the codes stay behind decode() (bit-packed on OpenCL) until the dense field is read
         packed, stats, hist, positions = self._engine.step_packed(frame)
         self._frames += 1
+        if self._frames <= self.params.history_frames:
+            # The slowest channel's history is not full yet, and until it is the field is
+            # all NaN (and its detection counts and histograms empty): with delays > 1 the
+            # one-frame channels could fire from frame 4, but the summary's tables and the
+            # field's contract are for the whole channel set.
+            packed, stats, hist, positions = _empty_output(self.height, self.width, stats, hist, positions)
         if _is_brightness_step(stats, self.width * self.height):
             self._last_step = self._frames
         # the step's states sit in the templates of this frame and the next two

@@ -509,7 +509,10 @@ class OpenCLEngine:
         codes = PackedCodes(lay.plane_rows(planes.view(np.uint32).reshape(2, 5, lay.OUT_PLANE)), lay.W)
         ints = host[lay.stats_offset :].view(np.int32)
         n_ch = len(lay.channels)
-        stats = _fold_copies(ints[: lay.pos_offset].reshape(lay.COUNTER_COPIES, lay.SLOT_INTS))[: lay.n_fixed]
+        # (the counters in int64 before they are added up: the contrast sum of a large
+        # frame passes 2^31, each copy's share of it does not)
+        stats = _fold_copies(ints[: lay.pos_offset].reshape(lay.COUNTER_COPIES, lay.SLOT_INTS)
+                             .astype(np.int64))[: lay.n_fixed]
         self.last_theta_q = self.theta_q
         self.theta_q = self.params.next_threshold_q(int(stats[STAT_CONTRAST]),
                                                     self.params.contrast_samples(lay.W, lay.H))

@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import numbers
 
 import numpy as np
 
@@ -95,6 +96,37 @@ def gaussian_weights(size: int, total: int = 256) -> tuple[int, ...]:
         rest -= 2
     w[half] += rest
     return tuple(int(v) for v in w)
+
+
+#: Channels (scale, delay pairs) an engine can have: a channel's index + 1 is a 4-bit code.
+MAX_CHANNELS = 15
+
+
+def _is_real(value) -> bool:
+    """A finite real number (numpy scalars too), not a bool or a string."""
+    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_)) and math.isfinite(value)
+
+
+def _is_whole(value) -> bool:
+    """A whole number (int or numpy integer), not a bool, a float or a string."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
+def _flag(name: str, value) -> bool:
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name}={value!r}: expected True or False")
+    return bool(value)
+
+
+def _whole_numbers(name: str, values, what: str) -> tuple[int, ...]:
+    """``values`` as a tuple of ints, or a ValueError naming ``name``."""
+    if isinstance(values, (str, bytes)) or not hasattr(values, "__iter__"):
+        raise ValueError(f"{name}={values!r}: expected a sequence of {what}")
+    values = tuple(values)
+    for v in values:
+        if not _is_whole(v):
+            raise ValueError(f"{name}={values!r}: {v!r} is not a whole number (expected {what})")
+    return tuple(int(v) for v in values)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -183,11 +215,12 @@ class EngineParams:
     summary_evidence: bool = True
 
     def __post_init__(self):
-        if not isinstance(self.summary_evidence, (bool, np.bool_)):
-            raise ValueError(f"summary_evidence={self.summary_evidence!r}: expected True or False")
-        object.__setattr__(self, "summary_evidence", bool(self.summary_evidence))
+        # every field is checked for its type as well as its range: a string, a fraction
+        # or None must not become a different model by silent conversion
+        for name in ("sharp_templates", "brightness_compensation", "gradient_classes", "summary_evidence"):
+            object.__setattr__(self, name, _flag(name, getattr(self, name)))
         step = self.evidence_row_step
-        if isinstance(step, bool) or not isinstance(step, (int, np.integer)) or not 0 <= step <= 1024:
+        if not _is_whole(step) or not 0 <= step <= 1024:
             raise ValueError(f"evidence_row_step={step!r}: expected a whole number of rows from 1 "
                              "to 1024, or 0 for automatic")
         object.__setattr__(self, "evidence_row_step", int(step))
@@ -195,11 +228,12 @@ class EngineParams:
             raise ValueError(f"threshold_mode={self.threshold_mode!r}: expected 'fixed' or 'adaptive'")
         for name in ("adaptive_gain", "threshold_min", "threshold_max"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and 0 < value <= 255):
+            if not (_is_real(value) and 0 < value <= 255):
                 raise ValueError(f"{name}={value!r}: must be a number in (0, 255]")
+            object.__setattr__(self, name, float(value))
         if self.threshold_min > self.threshold_max:
             raise ValueError(f"threshold_min={self.threshold_min} is above threshold_max={self.threshold_max}")
-        scales = tuple(int(k) for k in self.scales)
+        scales = _whole_numbers("scales", self.scales, "odd receptor sizes, e.g. (1, 3, 5)")
         if not scales:
             raise ValueError("scales: at least one scale is needed")
         for k in scales:
@@ -208,18 +242,28 @@ class EngineParams:
         if len(set(scales)) != len(scales):
             raise ValueError(f"scales: {scales} has duplicates")
         object.__setattr__(self, "scales", tuple(sorted(scales)))
-        if not (0 <= self.threshold <= 255 and math.isfinite(self.threshold)):
-            raise ValueError(f"threshold={self.threshold}: must be a number of gray levels in 0..255")
-        gaussian_weights(int(self.prefilter_size))  # validates
-        delays = tuple(sorted({int(d) for d in self.delays}))
+        if not (_is_real(self.threshold) and 0 <= self.threshold <= 255):
+            raise ValueError(f"threshold={self.threshold!r}: must be a number of gray levels in 0..255")
+        object.__setattr__(self, "threshold", float(self.threshold))
+        if not _is_whole(self.prefilter_size):
+            raise ValueError(f"prefilter_size={self.prefilter_size!r}: expected a whole number of pixels "
+                             "(an odd window width, or 0 for none)")
+        object.__setattr__(self, "prefilter_size", int(self.prefilter_size))
+        gaussian_weights(self.prefilter_size)  # validates
+        delays = tuple(sorted(set(_whole_numbers("delays", self.delays, "frame delays, e.g. (1, 2, 4)"))))
         if not delays or delays[0] != 1 or delays[-1] > 16:
             raise ValueError(f"delays={self.delays}: must include 1, each between 1 and 16 frames")
         object.__setattr__(self, "delays", delays)
-        dscales = tuple(sorted({int(k) for k in self.delay_scales}))
-        for k in dscales:
-            if k not in scales:
-                raise ValueError(f"delay_scales: {k} is not one of the scales {scales}")
+        dscales = tuple(sorted(set(_whole_numbers("delay_scales", self.delay_scales, "scales, e.g. (1,)"))))
+        if delays[-1] > 1:  # (without delays above 1 they make no channel)
+            for k in dscales:
+                if k not in scales:
+                    raise ValueError(f"delay_scales: {k} is not one of the scales {scales}")
         object.__setattr__(self, "delay_scales", dscales)
+        # a channel's index + 1 is a 4-bit code in both backends' output
+        if len(self.channels) > MAX_CHANNELS:
+            raise ValueError(f"{len(self.channels)} channels (scales x delays): at most {MAX_CHANNELS} "
+                             "are supported")
 
     # ---- derived tables (computed once, on the host, shared by both backends) ----
     @property
@@ -343,9 +387,11 @@ class EngineParams:
 
         1 up to 639 px wide, 2 from 640, 4 from 1280, …: at most ~320–640 sampled columns
         of ~60 sampled rows, so the summary sees about as many detections at 640×480 as at
-        320×240 (where its likelihood was calibrated) and the evidence costs the same.
+        320×240 (where its likelihood was calibrated) and the evidence costs the same. At
+        most 32 (from 10 240 px wide): the OpenCL kernel samples the columns of each 32-pixel
+        word by a mask.
         """
-        return 1 << max(0, (int(width) // 320).bit_length() - 1)
+        return min(32, 1 << max(0, (int(width) // 320).bit_length() - 1))
 
     @staticmethod
     def orientation_table() -> np.ndarray:

@@ -108,7 +108,27 @@ def test_bad_frames_raise_value_error_naming_expected_and_received(frame, messag
         (dict(threshold=-1.0), "threshold"),
         (dict(prefilter_size=4), "prefilter_size"),
         (dict(delays=(2,)), "delays"),
-        (dict(delay_scales=(3,), scales=(1, 5)), "delay_scales"),
+        (dict(delay_scales=(3,), scales=(1, 5), delays=(1, 2)), "delay_scales"),
+        # types are checked, not converted: a string, a fraction or None is an error
+        (dict(threshold="5"), "threshold"),
+        (dict(threshold=True), "threshold"),
+        (dict(threshold=None), "threshold"),
+        (dict(threshold=float("nan")), "threshold"),
+        (dict(scales=5), "scales"),
+        (dict(scales=(1.5, 3)), "scales"),
+        (dict(scales=None), "scales"),
+        (dict(prefilter_size=11.7), "prefilter_size"),
+        (dict(prefilter_size=None), "prefilter_size"),
+        (dict(delays=(1, 2.5)), "delays"),
+        (dict(delays=3), "delays"),
+        (dict(delay_scales=None), "delay_scales"),
+        (dict(sharp_templates="no"), "sharp_templates"),
+        (dict(brightness_compensation="no"), "brightness_compensation"),
+        (dict(gradient_classes=1), "gradient_classes"),
+        (dict(adaptive_gain=True), "adaptive_gain"),
+        (dict(threshold_min=None), "threshold_min"),
+        # 16 channels: one more than a 4-bit code can name, in both backends
+        (dict(scales=(1, 3, 5, 7, 9, 11, 13, 15), delays=tuple(range(1, 10)), backend="numpy"), "at most 15"),
         (dict(backend="cuda"), "backend"),
         (dict(evidence_row_step=-1), "evidence_row_step"),
         (dict(evidence_row_step=2.5), "evidence_row_step"),
@@ -120,10 +140,50 @@ def test_bad_parameters_raise_value_error_naming_them(kwargs, message):
         emdflow.FlowEstimator(96, 72, **kwargs)
 
 
-@pytest.mark.parametrize("size", [(2, 50), (50, 0), (50.5, 40)])
+def test_parameters_accept_numpy_scalars_and_channel_sets_without_scale_1():
+    """numpy numbers are numbers (a config read through numpy, a sweep with np.arange),
+    and ``delay_scales`` only matters with a delay above 1: a channel set without scale 1
+    needs no ``delay_scales`` of its own."""
+    est = emdflow.FlowEstimator(96, 72, backend="numpy", scales=np.array([3, 5, 7]), threshold=np.float32(4.5),
+                                prefilter_size=np.int64(7), threshold_mode="adaptive",
+                                adaptive_gain=np.float64(0.4), sharp_templates=np.bool_(True))
+    p = est.params
+    assert p.scales == (3, 5, 7) and p.threshold == 4.5 and p.prefilter_size == 7 and p.sharp_templates is True
+    assert all(type(k) is int for k in p.scales) and type(p.threshold) is float
+    assert emdflow.FlowEstimator(96, 72, backend="numpy", scales=(15,)).params.channels == ((15, 1),)
+    flight = _flight(flow=(5.0, 0.0))
+    fields = [est.update(flight.render(t)) for t in range(5)]
+    assert np.isfinite(fields[-1].u).any()
+
+
+@pytest.mark.parametrize("size", [(2, 50), (50, 0), (50.5, 40), (4097, 4096), (1 << 17, 129)])
 def test_bad_sizes(size):
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="frame size|integer"):
         emdflow.FlowEstimator(*size, backend="numpy")
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_nothing_is_detected_until_the_slowest_channel_has_its_history(backend):
+    """With delays up to 4 (the extended model) the one-frame channels could fire from
+    frame 4, but the field is all NaN, with no detection counted or binned, until the
+    whole channel set has its history (frame 13); the frame's other counters are kept."""
+    from emdflow.params import MODELS
+
+    est = emdflow.FlowEstimator(96, 72, backend=backend, **MODELS["extended"])
+    assert est.params.history_frames == 12
+    flight = _flight(flow=(3.0, -1.0), noise_sigma=2)
+    for t in range(14):
+        field = est.update(flight.render(t))
+        assert field.ready == (t >= 12)
+        if not field.ready:
+            assert np.isnan(field.u).all() and np.isnan(field.v).all()
+            assert field.u_detections == field.v_detections == 0
+            assert not field.histogram.any() and not field.positions.any()
+            assert field.textured_fraction > 0.5
+        if t >= 4:
+            assert field.changed_fraction.max() > 0  # the states are there all along
+    assert np.isfinite(field.u).any() and field.u_detections == np.count_nonzero(field.u_code) > 0
+    assert field.histogram.any()
 
 
 def test_opencl_devices_and_device_choice(monkeypatch):

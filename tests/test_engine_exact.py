@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from emdflow.params import MODELS, EngineParams
-from emdflow.reference import ReferenceEngine, prefilter
+from emdflow.reference import STAT_CONTRAST, ReferenceEngine, prefilter
 from emdflow.synthetic import CameraFlight
 
 opencl_backend = pytest.importorskip("emdflow.opencl_backend")
@@ -172,6 +172,37 @@ def test_brightness_compensation_is_exact(monkeypatch, size, model, portable):
     need = 10 if model == "extended" else 5  # (two delays instead of three)
     assert ratios.count(256) > need and len({q for q in ratios if 128 < q < 384} - {256}) > need
     assert sum(not 128 < q < 384 for q in ratios) >= 2
+    assert _compare(width, height, frames, params) > 0
+
+
+def test_contrast_counter_past_two_to_the_31():
+    """The contrast statistic of a large high-contrast frame passes 2^31 (each of the
+    kernel's counter copies holds an eighth of it): the OpenCL engine adds the copies in
+    64 bits and gives the reference's sum, and so the same adaptive threshold after it."""
+    width, height = 4096, 2304
+    params = EngineParams(prefilter_size=0, threshold_mode="adaptive")
+    # stripes of period 4 in both axes: every central difference is ±255
+    ramp = ((np.arange(4096) // 2) % 2) * 255
+    frame = np.bitwise_xor.outer(ramp[:height], ramp[:width]).astype(np.uint8)
+    p = frame.astype(np.int64)
+    grad = np.abs(p[1:-1, 2:] - p[1:-1, :-2]) + np.abs(p[2:, 1:-1] - p[:-2, 1:-1])
+    expected = int(grad[1::2].sum())  # the reference's statistic (summary_statistics)
+    assert expected > 2 ** 31
+    engine = opencl_backend.OpenCLEngine(width, height, params)
+    stats = engine.step_packed(frame)[1]
+    assert int(stats[STAT_CONTRAST]) == expected
+    assert engine.theta_q == params.next_threshold_q(expected, params.contrast_samples(width, height))
+
+
+def test_very_wide_frames_sample_the_same_columns():
+    """From 20 480 px wide the column step would be 64, more than a 32-pixel word's mask
+    can hold: it stops at 32, and both backends sample the same columns."""
+    assert EngineParams.evidence_column_step(20480) == EngineParams.evidence_column_step(10240) == 32
+    assert EngineParams.evidence_column_step(640) == 2
+    width, height = 20480, 16
+    params = EngineParams(scales=(1, 3))
+    flight = CameraFlight("brick", width=width, height=height, flow=(1.0, 0.0), noise_sigma=2, seed=2)
+    frames = [flight.render(t) for t in range(5)]
     assert _compare(width, height, frames, params) > 0
 
 
