@@ -5,11 +5,13 @@
 #   sudo deploy/install.sh                 # PoCL (CPU OpenCL) from pip, service enabled
 #   sudo deploy/install.sh --opencl apt    # PoCL from Debian (pocl-opencl-icd), e.g. 32-bit Pi OS
 #   sudo deploy/install.sh --opencl vendor # the board's own OpenCL ICD (Mali, Jetson, ...)
+#   sudo deploy/install.sh --python python3.11   # Ubuntu 22.04 / Jetson JetPack 6 (python3 is 3.10)
 #   deploy/install.sh --dry-run            # print every step, change nothing (no root needed)
 #
-# Steps: apt packages (python3-venv, binutils for PoCL's linker, the OpenCL ICD loader and
-# driver) -> system user 'emdflow' in groups video, dialout -> venv in PREFIX with the
-# package -> /etc/emdflow/emdflow.toml (kept if present) -> udev rule -> systemd unit.
+# Steps: Python >= 3.11 check -> apt packages (python3-venv, binutils for PoCL's linker, the
+# OpenCL ICD loader and driver) -> system user 'emdflow' in groups video, dialout -> its
+# state and cache directories (home, PoCL kernel cache) -> venv in PREFIX with the package
+# -> /etc/emdflow/emdflow.toml (kept if present) -> udev rule -> systemd unit.
 set -euo pipefail
 
 PREFIX=/opt/emdflow
@@ -17,6 +19,13 @@ CONF_DIR=/etc/emdflow
 UNIT_DIR=/etc/systemd/system
 UDEV_DIR=/etc/udev/rules.d
 SERVICE_USER=emdflow
+# The unit's StateDirectory=emdflow, CacheDirectory=emdflow and Environment= values. They
+# are created here too: systemd makes them only when the service first starts, and the
+# engine check (emdflowd --demo as the service user) comes before that.
+STATE_DIR=/var/lib/emdflow
+CACHE_DIR=/var/cache/emdflow
+POCL_CACHE_DIR="$CACHE_DIR/pocl"
+PYTHON=python3      # interpreter of the venv: Python >= 3.11 (tomllib)
 OPENCL=pip          # pip | apt | vendor
 DEPTHAI=0
 START=0
@@ -24,7 +33,8 @@ DRY_RUN=0
 SRC="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 
 usage() {
-    sed -n '2,14p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'
+    # the header comment, up to the first line that is not one
+    sed -n '2,/^[^#]/{/^#/s/^# \{0,1\}//p}' "${BASH_SOURCE[0]}"
     cat <<EOF
 
 Options:
@@ -35,6 +45,8 @@ Options:
                        pip: pyopencl + PoCL wheels (x86_64, aarch64); apt: Debian's
                        pocl-opencl-icd; vendor: keep the board's ICD (default $OPENCL)
   --depthai            also install depthai (Luxonis OAK cameras)
+  --python PY          interpreter for the venv, Python >= 3.11 (default $PYTHON); a name
+                       like python3.11 is installed with apt too (with PY-venv)
   --start              start the service at the end (default: enable only)
   --source DIR         project checkout to install from (default $SRC)
 EOF
@@ -47,6 +59,7 @@ while [ $# -gt 0 ]; do
         --user) SERVICE_USER="$2"; shift ;;
         --opencl) OPENCL="$2"; shift ;;
         --depthai) DEPTHAI=1 ;;
+        --python) PYTHON="$2"; shift ;;
         --start) START=1 ;;
         --source) SRC="$2"; shift ;;
         -h|--help) usage; exit 0 ;;
@@ -68,8 +81,34 @@ if [ "$DRY_RUN" = 0 ] && [ "$(id -u)" != 0 ]; then
     exit 1
 fi
 
+check_python() {
+    # emdflow reads its configuration with tomllib: Python 3.11 or newer.
+    local version status=0
+    version="$("$PYTHON" -c 'import sys; print("%d.%d.%d" % sys.version_info[:3]); sys.exit(sys.version_info < (3, 11))' \
+        2>/dev/null)" || status=$?
+    if [ -z "$version" ]; then
+        echo "install.sh: cannot run '$PYTHON' (--python); emdflow needs Python >= 3.11. Nothing was changed." >&2
+        exit 1
+    fi
+    if [ "$status" != 0 ]; then
+        cat >&2 <<EOF
+install.sh: '$PYTHON' is Python $version; emdflow needs Python >= 3.11 (tomllib). Nothing was changed.
+  Debian 12, Raspberry Pi OS bookworm and Ubuntu 24.04 have it as python3. Ubuntu 22.04
+  (Jetson JetPack 6) has python3.10: use --python python3.11 (installed with apt, with
+  python3.11-venv). Otherwise install a newer Python and pass --python /path/to/python3.X.
+EOF
+        exit 1
+    fi
+    echo "   $PYTHON is Python $version"
+}
+
 VENV="$PREFIX/venv"
 APT_PKGS=(python3 python3-venv python3-pip binutils ocl-icd-libopencl1 clinfo)
+case "$PYTHON" in
+    python3) ;;
+    python3.[0-9]*) APT_PKGS+=("$PYTHON" "$PYTHON-venv") ;;   # e.g. python3.11 on Ubuntu 22.04
+    *) ;;                                                     # a path: the user installed it
+esac
 EXTRAS=opencl
 case "$OPENCL" in
     pip) EXTRAS=pocl ;;                       # pyopencl[pocl]: PoCL wheels, needs binutils' ld
@@ -78,25 +117,43 @@ case "$OPENCL" in
 esac
 [ "$DEPTHAI" = 1 ] && EXTRAS="$EXTRAS,depthai"
 
-echo "== 1/6 system packages"
+echo "== 0/7 Python >= 3.11 ($PYTHON)"
+PYTHON_CHECKED=0
+if command -v "$PYTHON" >/dev/null 2>&1 || [[ "$PYTHON" == */* ]]; then
+    check_python        # before anything is installed or created (apt cannot supply a path)
+    PYTHON_CHECKED=1
+else
+    echo "   $PYTHON is not installed yet: checked after the system packages"
+fi
+
+echo "== 1/7 system packages"
 run apt-get update
 run apt-get install -y --no-install-recommends "${APT_PKGS[@]}"
+if [ "$PYTHON_CHECKED" = 0 ] && [ "$DRY_RUN" = 0 ]; then
+    check_python        # still before the user and the venv
+fi
 
-echo "== 2/6 service user '$SERVICE_USER' (groups video, dialout)"
+echo "== 2/7 service user '$SERVICE_USER' (groups video, dialout)"
 if id "$SERVICE_USER" >/dev/null 2>&1; then
     run usermod -a -G video,dialout "$SERVICE_USER"
 else
-    run useradd --system --home-dir /var/lib/emdflow --no-create-home --shell /usr/sbin/nologin \
+    run useradd --system --user-group --home-dir "$STATE_DIR" --no-create-home --shell /usr/sbin/nologin \
         --groups video,dialout "$SERVICE_USER"
 fi
 
-echo "== 3/6 Python venv in $VENV"
+echo "== 3/7 state and cache directories $STATE_DIR, $CACHE_DIR (owner $SERVICE_USER)"
+# The service user's home and PoCL's kernel cache must exist and be writable before the
+# first 'emdflowd --demo' as that user: without them PoCL finds no usable device.
+run install -d -o "$SERVICE_USER" -g "$SERVICE_USER" -m 0755 "$STATE_DIR" "$CACHE_DIR"
+run install -d -o "$SERVICE_USER" -g "$SERVICE_USER" -m 0750 "$POCL_CACHE_DIR"
+
+echo "== 4/7 Python venv in $VENV"
 run mkdir -p "$PREFIX"
-run python3 -m venv "$VENV"
+run "$PYTHON" -m venv "$VENV"
 run "$VENV/bin/pip" install --upgrade pip
 run "$VENV/bin/pip" install "$SRC[$EXTRAS]"
 
-echo "== 4/6 configuration $CONF_DIR/emdflow.toml"
+echo "== 5/7 configuration $CONF_DIR/emdflow.toml"
 run install -d -m 0755 "$CONF_DIR"
 if [ -e "$CONF_DIR/emdflow.toml" ]; then
     echo "   keeping the existing $CONF_DIR/emdflow.toml (new example: $SRC/deploy/emdflow.toml)"
@@ -104,12 +161,12 @@ else
     run install -m 0644 "$SRC/deploy/emdflow.toml" "$CONF_DIR/emdflow.toml"
 fi
 
-echo "== 5/6 udev rule $UDEV_DIR/99-emdflow.rules (stable /dev/emdflow-camera, /dev/emdflow-fc)"
+echo "== 6/7 udev rule $UDEV_DIR/99-emdflow.rules (stable /dev/emdflow-camera, /dev/emdflow-fc)"
 run install -m 0644 "$SRC/deploy/99-emdflow.rules" "$UDEV_DIR/99-emdflow.rules"
 run udevadm control --reload-rules
 run udevadm trigger
 
-echo "== 6/6 systemd unit $UNIT_DIR/emdflowd.service"
+echo "== 7/7 systemd unit $UNIT_DIR/emdflowd.service"
 UNIT_TMP="$(mktemp)"
 trap 'rm -f "$UNIT_TMP"' EXIT
 sed -e "s#^ExecStart=.*#ExecStart=$VENV/bin/emdflowd --config $CONF_DIR/emdflow.toml#" \
@@ -127,7 +184,8 @@ cat <<EOF
 
 Done. Next:
   1. edit $CONF_DIR/emdflow.toml: [source] uri, [optics] focal_length_px, [link] port/baud/autopilot
-  2. check the engine:   sudo -u $SERVICE_USER $VENV/bin/emdflowd --demo
+  2. check the engine as the service user, in the unit's environment:
+       sudo -u $SERVICE_USER env HOME=$STATE_DIR XDG_CACHE_HOME=$CACHE_DIR POCL_CACHE_DIR=$POCL_CACHE_DIR $VENV/bin/emdflowd --demo
   3. start the service:  sudo systemctl start emdflowd
   4. watch it:           journalctl -u emdflowd -f     (status line with latency p50/p99)
 EOF

@@ -36,10 +36,15 @@ Interval integration
 with a frame is the motion since the previous frame, so it belongs to the time between
 the two capture timestamps. Rules:
 
-* A frame arriving more than ``gap_threshold_us`` after the previous one (≥ 5 nominal frame
-  intervals, at least 0.25 s unless the frame rate is very low) restarts integration: its flow
-  spans the gap and is discarded, as is the unsent partial interval. No spike, no huge
-  integration time.
+* The nominal frame interval is the lower median of the last frame intervals (capture
+  timestamps), so one stall or dropped frame does not move it, and a stream that slows down
+  for good (a larger frame subset, a slower camera) is learned within a few frames.
+* A frame arriving more than ``gap_threshold_us`` after the previous one (5 nominal frame
+  intervals, but at most 0.25 s unless the frame rate is very low — then 2 intervals — and
+  never more than ``max_interval_us``) restarts integration: its flow spans the gap and is discarded, as is
+  the unsent partial interval. No spike, no huge integration time. A slow but steady stream
+  (frames up to ``max_interval_us`` = 0.45 s apart: ArduPilot needs a message every < 0.5 s)
+  is integrated normally.
 * A timestamp that does not advance (clock reset, duplicate) also restarts integration.
 * A quality-0 ("blind") frame still advances time so the autopilot keeps a continuous
   sequence (PX4 resets on gaps, ArduPilot needs a message every < 0.5 s); its flow is not
@@ -53,6 +58,7 @@ the two capture timestamps. Rules:
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 __all__ = [
@@ -60,6 +66,7 @@ __all__ = [
     "apply_mounting",
     "FlowInterval",
     "FlowIntegrator",
+    "RecentIntervals",
     "VALID_ROTATIONS_DEG",
 ]
 
@@ -69,6 +76,40 @@ VALID_ROTATIONS_DEG = (0, 90, 180, 270)
 DEFAULT_MAX_GAP_US = 250_000
 #: Quality-0 keep-alive frames may stretch an interval up to this (ArduPilot needs < 0.5 s).
 DEFAULT_MAX_BLIND_INTERVAL_US = 450_000
+#: Longest frame interval a report may contain, µs (ArduPilot: < 0.5 s between messages).
+DEFAULT_MAX_INTERVAL_US = 450_000
+
+
+class RecentIntervals:
+    """Typical spacing of a stream: the lower median of its last few intervals.
+
+    One stall or dropped frame does not move it; a lasting change (a slower camera, a larger
+    frame subset) does within ``size // 2 + 1`` intervals.
+
+    Parameters
+    ----------
+    size : int
+        Number of intervals remembered.
+    """
+
+    def __init__(self, size: int = 9):
+        self._values: deque[float] = deque(maxlen=size)
+
+    def add(self, interval: float) -> None:
+        """Remember one interval (any unit; values <= 0 are ignored)."""
+        if interval > 0:
+            self._values.append(float(interval))
+
+    def __len__(self) -> int:
+        return len(self._values)
+
+    @property
+    def typical(self) -> float | None:
+        """Lower median of the remembered intervals, None before the first one."""
+        if not self._values:
+            return None
+        ordered = sorted(self._values)
+        return ordered[(len(ordered) - 1) // 2]
 
 
 def focal_length_px_from_fov(*, fov_deg: float, size_px: float) -> float:
@@ -189,11 +230,14 @@ class FlowIntegrator:
         frame interval itself is longer, see :attr:`gap_threshold_us`), µs.
     max_blind_interval_us : int
         Longest interval a quality-0 keep-alive frame may close, µs.
+    max_interval_us : int
+        Longest frame interval that is integrated at all, µs; a longer one always restarts.
     """
 
     def __init__(self, *, focal_length_px: float, rotation_deg: int = 0, mirror: bool = False,
                  gap_frames: float = 5.0, max_gap_us: int = DEFAULT_MAX_GAP_US,
-                 max_blind_interval_us: int = DEFAULT_MAX_BLIND_INTERVAL_US):
+                 max_blind_interval_us: int = DEFAULT_MAX_BLIND_INTERVAL_US,
+                 max_interval_us: int = DEFAULT_MAX_INTERVAL_US):
         if not focal_length_px > 0 or not math.isfinite(focal_length_px):
             raise ValueError(f"focal length must be a positive number of pixels, got {focal_length_px}")
         apply_mounting(0.0, 0.0, rotation_deg=rotation_deg)  # validates the rotation
@@ -203,7 +247,10 @@ class FlowIntegrator:
         self.gap_frames = float(gap_frames)
         self.max_gap_us = int(max_gap_us)
         self.max_blind_interval_us = int(max_blind_interval_us)
+        self.max_interval_us = int(max_interval_us)
+        #: Typical frame interval, µs (lower median of recent good frames), None at first.
         self.nominal_interval_us: float | None = None
+        self._intervals = RecentIntervals()
         self.restart_count = 0
         self._last_us: int | None = None
         self._clear(None)
@@ -221,11 +268,12 @@ class FlowIntegrator:
     def gap_threshold_us(self) -> float:
         """Frame interval above which integration restarts, µs."""
         if self.nominal_interval_us is None:
-            return float(self.max_gap_us)
-        # 5 nominal intervals, but never less than 2 at very low frame rates, and never above
-        # max_gap_us unless the camera itself is that slow.
+            return float(min(self.max_gap_us, self.max_interval_us))
+        # 5 nominal intervals, but never less than 2 at very low frame rates, never above
+        # max_gap_us unless the camera itself is that slow, and never above max_interval_us.
         return min(self.gap_frames * self.nominal_interval_us,
-                   max(float(self.max_gap_us), 2.0 * self.nominal_interval_us))
+                   max(float(self.max_gap_us), 2.0 * self.nominal_interval_us),
+                   float(self.max_interval_us))
 
     @property
     def elapsed_us(self) -> int:
@@ -260,7 +308,8 @@ class FlowIntegrator:
         Returns
         -------
         bool
-            False if the frame restarted integration (its flow was discarded).
+            False if the frame (re)started integration — the first frame, or one after a gap
+            or a clock reset — and its flow was discarded.
         """
         ts = int(timestamp_us)
         q = max(0, min(255, int(quality))) if math.isfinite(quality) else 0
@@ -270,17 +319,16 @@ class FlowIntegrator:
             self.restart(ts)
             return False
         dt = ts - self._last_us
+        if q > 0 and 0 < dt <= self.max_interval_us:
+            # Learn the interval from good frames before judging the gap: a stream that slows
+            # down for good is not a gap at every frame (keep-alive samples teach nothing).
+            self._intervals.add(dt)
+            self.nominal_interval_us = self._intervals.typical
         blind_keepalive = q == 0 and 0 < dt <= self.max_blind_interval_us and self.elapsed_us + dt <= self.max_blind_interval_us
         if dt <= 0 or (dt > self.gap_threshold_us and not blind_keepalive):
             self.restart_count += 1
             self.restart(ts)
             return False
-        if q > 0 and dt <= self.gap_threshold_us:
-            # Learn the nominal frame interval from normal frames only (slow EMA: robust to jitter).
-            if self.nominal_interval_us is None:
-                self.nominal_interval_us = float(dt)
-            else:
-                self.nominal_interval_us += 0.05 * (dt - self.nominal_interval_us)
         if self._start_us is None:
             self._start_us = self._last_us
         self._last_us = ts

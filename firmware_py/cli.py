@@ -15,7 +15,7 @@ import sys
 
 from .config import ConfigError, load_config
 
-__all__ = ["main", "build_parser", "setup_logging"]
+__all__ = ["main", "build_parser", "setup_logging", "stderr_is_journal"]
 
 EXIT_OK, EXIT_FAILURE, EXIT_CONFIG = 0, 1, 2
 
@@ -32,10 +32,27 @@ class _JournalFormatter(logging.Formatter):
         return "\n".join(prefix + line for line in text.splitlines())
 
 
+def stderr_is_journal() -> bool:
+    """True if file descriptor 2 is the journal stream systemd connected us to.
+
+    ``$JOURNAL_STREAM`` (``DEVICE:INODE``) is inherited by child processes, whose stderr may
+    well be a pipe or a terminal: as systemd.exec(5) says, it only applies when it matches
+    stderr's own ``st_dev:st_ino``.
+    """
+    device, sep, inode = os.environ.get("JOURNAL_STREAM", "").partition(":")
+    try:
+        expected = (int(device), int(inode)) if sep else None
+        st = os.fstat(2)
+    except (ValueError, OSError):  # malformed variable, or no stderr at all
+        return False
+    return expected == (st.st_dev, st.st_ino)
+
+
 def setup_logging(level: str = "INFO") -> None:
-    """Log to stderr: journald format under systemd (``$JOURNAL_STREAM``), else timestamped."""
+    """Log to stderr: journald format (``<6>`` priority prefixes, no timestamp) when stderr is
+    the journal stream (:func:`stderr_is_journal`), else timestamped lines."""
     handler = logging.StreamHandler(sys.stderr)
-    if os.environ.get("JOURNAL_STREAM"):
+    if stderr_is_journal():
         handler.setFormatter(_JournalFormatter("%(name)s: %(message)s"))
     else:
         handler.setFormatter(logging.Formatter("%(asctime)s.%(msecs)03d %(levelname)-7s %(name)s: %(message)s",

@@ -102,6 +102,9 @@ class LinkConfigSection:
     ground_distance_m: float | None = _opt(None, minimum=0.0, maximum=1000.0, doc="fixed ground distance, m")
     message_log: str | None = _opt(None, doc="CSV / JSON-lines log of sent messages")
     extra_values: bool = _opt(False, doc="send extra named values")
+    # must equal INAV's opflow_scale, or INAV's rates come out scaled by the ratio
+    msp_counts_per_degree: float = _opt(10.5, minimum=0.1, maximum=1000.0,
+                                        doc="MSP motion counts per degree of angular flow")
 
 
 @dataclasses.dataclass
@@ -113,6 +116,8 @@ class DaemonConfig:
     threading: str = _opt("auto", choices=("auto", "single", "capture-thread"), doc="loop structure")
     reopen_backoff_s: float = _opt(0.5, minimum=0.05, maximum=60.0, doc="first reopen delay, s")
     reopen_backoff_max_s: float = _opt(10.0, minimum=0.1, maximum=600.0, doc="longest reopen delay, s")
+    # the link's keep-alive starts after the smaller of this and its own value (MAVLink 0.3 s,
+    # MSP 0.15 s): a larger value cannot make the autopilot time out
     blind_after_s: float = _opt(0.25, minimum=0.02, maximum=10.0, doc="no frame for this long = blind, s")
 
 
@@ -263,6 +268,14 @@ def load_config(path: str | Path | None) -> Config:
         raise ConfigError(f"{path}: configuration file not found") from None
     except PermissionError:
         raise ConfigError(f"{path}: permission denied") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: is a directory, not a configuration file") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        # tomllib decodes UTF-8 and lets this through (e.g. a "°" saved as Latin-1)
+        raise ConfigError(f"{path}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset "
+                          f"{exc.start}); save the file as UTF-8") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
     return config_from_dict(data, origin=str(path))

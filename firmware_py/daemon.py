@@ -14,7 +14,9 @@ Structure (``[daemon] threading``, see :func:`choose_threading` for the measurem
 
 The processing loop also services the link every iteration (heartbeats and quality-0 flow
 messages go on while the camera is blind), pings the systemd watchdog, resets the estimator
-only after a long gap, and logs one status line every ``log_interval_s``.
+only after a long gap, and logs one status line every ``log_interval_s``. "Long" is relative
+to the typical interval between processed frames (capture timestamps): a slow camera or a
+large frame subset is not a gap at every frame.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ import numpy as np
 import emdflow
 from emdflow.cues import looming_cues
 
+from .angular import RecentIntervals
 from .config import Config
 from .links import FlowSample
 from .sdnotify import Notifier
@@ -45,6 +48,9 @@ _BAD_FRAME_LOG_S = 5.0    # at most one "wrong frame" line per this many seconds
 # A driver read that has not returned for this long is hung (OpenCV's V4L2 read gives up
 # after 10 s): only a new process recovers it, so the daemon exits 1 and systemd restarts it.
 _STUCK_READ_S = 20.0
+# Frames further apart than this many typical processed intervals are a gap (and no frame
+# for that long is blindness), when that is longer than the configured time.
+_GAP_INTERVALS = 3.0
 
 
 def choose_threading(setting: str, *, live: bool) -> str:
@@ -264,12 +270,17 @@ class SourceKeeper:
         self._opened_once = False
         self._delivered = False
         self._lock = threading.Lock()
+        #: called with each source the keeper opens itself (a camera absent at start-up,
+        #: a reopen): the daemon checks what the camera delivers
+        self.on_open: Callable[[FrameSource], None] | None = None
+        self._bad_seen = 0  # the source's bad_frames already added to stats.bad_frames
         #: time.monotonic() when the current source.read() started, None outside a read
         self.reading_since: float | None = None
 
     def adopt(self, source: FrameSource) -> None:
         """Use an already opened source (opened at start-up to learn its size)."""
         self.source, self._opened_once = source, True
+        self._bad_seen = getattr(source, "bad_frames", 0)
 
     def retry_after(self, delay_s: float) -> None:
         """Schedule the next open attempt ``delay_s`` from now."""
@@ -296,11 +307,22 @@ class SourceKeeper:
             self._fail(f"source: cannot open: {exc}")
             return False
         self.source, self._delivered = source, False
+        self._bad_seen = getattr(source, "bad_frames", 0)
         if self._opened_once:
             self.stats.reopens += 1
             log.info("source %s reopened", source.uri)
         self._opened_once = True
+        if self.on_open is not None:
+            self.on_open(source)
         return True
+
+    def _count_bad(self, source: FrameSource) -> None:
+        """Add the frames the source itself skipped (a buffer it could not convert) to the
+        daemon's bad-frame count."""
+        seen = getattr(source, "bad_frames", 0)
+        if seen != self._bad_seen:
+            self.stats.bad_frames += seen - self._bad_seen
+            self._bad_seen = seen
 
     def read(self) -> Frame | None:
         """Next frame, or None while the source is unavailable (back-off running)."""
@@ -315,10 +337,12 @@ class SourceKeeper:
                 frame = source.read()
             except Exception as exc:
                 self.reading_since = None
+                self._count_bad(source)
                 text = str(exc) or type(exc).__name__
                 self._fail(text if source.uri in text else f"source {source.uri}: {text}")
                 return None
             self.reading_since = None
+            self._count_bad(source)
             if frame is None:
                 self._fail(f"source {source.uri}: end of stream")
                 return None
@@ -417,6 +441,7 @@ class Daemon:
         self.exit_code = 0
         self.running = threading.Event()
         self._prev: Frame | None = None
+        self._processed_intervals = RecentIntervals()  # capture µs between processed frames
         self._last_frame_host_s = time.monotonic()
         self._blind_logged = False
         self._last_bad_log = -math.inf
@@ -448,7 +473,7 @@ class Daemon:
             sysid=c.sysid, compid=c.compid, sensor_id=c.sensor_id,
             message_rate_hz=c.message_rate_hz, heartbeat_rate_hz=c.heartbeat_rate_hz,
             ground_distance_m=c.ground_distance_m, message_log=c.message_log,
-            extra_values=c.extra_values))
+            extra_values=c.extra_values, msp_counts_per_degree=c.msp_counts_per_degree))
 
     # -- start-up ---------------------------------------------------------------------
     def _start_source(self) -> SourceKeeper:
@@ -462,6 +487,7 @@ class Daemon:
         self.live = source.live
         # Before opening: a camera without a focal length is a configuration error.
         self.focal_length_px = self.config.focal_length_px(self.width, source.default_focal_length_px)
+        keeper.on_open = self._source_opened
         try:
             source.open()
             keeper.adopt(source)
@@ -470,7 +496,30 @@ class Daemon:
                 raise
             log.warning("%s; retrying in %.1f s (heartbeats continue, quality 0)", exc, d.reopen_backoff_s)
             keeper.retry_after(d.reopen_backoff_s)
+        else:
+            self.focal_length_px = self._focal_length_of(source)
         return keeper
+
+    def _focal_length_of(self, source: FrameSource) -> float:
+        """The focal length at the processing size for an opened source: a field of view
+        is the lens's over the image the camera delivers, and a camera that delivers
+        another aspect ratio is centre-cropped (FrameSource.crop_fraction)."""
+        fov = self.config.optics.horizontal_fov_deg
+        if self.config.optics.focal_length_px is None and fov is not None:
+            return source.focal_length_for_hfov(fov)
+        return self.focal_length_px
+
+    def _source_opened(self, source: FrameSource) -> None:
+        """A source the keeper opened later (absent at start, or reopened): if it delivers
+        another image than the focal length was computed for, the link converts with the
+        new one from its next report."""
+        focal = self._focal_length_of(source)
+        if not math.isclose(focal, self.focal_length_px, rel_tol=1e-6):
+            log.warning("source %s: crop %.3f x %.3f of the delivered image: focal length %.1f px "
+                        "(was %.1f px)", source.uri, *source.crop_fraction, focal, self.focal_length_px)
+            self.focal_length_px = focal
+            if self.link is not None and hasattr(self.link, "set_focal_length_px"):
+                self.link.set_focal_length_px(focal)
 
     def _warm_up(self, t0: float) -> None:
         """Run the engine on blank frames once: kernels are built and buffers allocated
@@ -502,8 +551,10 @@ class Daemon:
             self.estimator = self._estimator_factory(self.width, self.height)
             self._warm_up(t0)
             self.link = self._link_factory(self.focal_length_px)
-            if hasattr(self.link, "blind_after_s"):  # the link's quality-0 keep-alive starts then
-                self.link.blind_after_s = self.config.daemon.blind_after_s
+            if hasattr(self.link, "blind_after_s"):
+                # The link's keep-alive starts then, but never later than the link's own value
+                # (MSP: 0.15 s, INAV times out after 0.2 s).
+                self.link.blind_after_s = min(self.link.blind_after_s, self.config.daemon.blind_after_s)
             self.mode = choose_threading(self.config.daemon.threading, live=self.live)
             log.info("source %s: %dx%d @ %g fps, focal length %.1f px; engine %s; link %s %s @ %d baud; %s",
                      self.config.source.uri, self.width, self.height, self.fps, self.focal_length_px,
@@ -556,7 +607,7 @@ class Daemon:
             now_s = time.monotonic()
             if frame is not None:
                 self._process(frame, now_s)
-            elif now_s - self._last_frame_host_s > d.blind_after_s:
+            elif now_s - self._last_frame_host_s > self._gap_s(d.blind_after_s):
                 self._blind(now_s)
             self.link.service(host_us())
             self._collect_latencies()
@@ -594,7 +645,7 @@ class Daemon:
                             f"({self.height}, {self.width}) uint8 ({self.width}x{self.height})")
             return
         prev = self._prev
-        gap_us = self.config.engine.reset_after_gap_s * 1e6
+        gap_us = self._gap_s(self.config.engine.reset_after_gap_s) * 1e6
         if prev is not None and (frame.timestamp_us <= prev.timestamp_us or frame.index <= prev.index
                                  or frame.timestamp_us - prev.timestamp_us > gap_us):
             self.estimator.reset()
@@ -604,6 +655,8 @@ class Daemon:
             else:
                 log.info("frame gap %.3f s (frame %d after %d): estimator reset",
                          (frame.timestamp_us - prev.timestamp_us) / 1e6, frame.index, prev.index)
+        if prev is not None:  # after the gap test: a stall must not widen its own threshold
+            self._processed_intervals.add(frame.timestamp_us - prev.timestamp_us)
         if self._blind_logged:
             log.info("source delivering again")
             self._blind_logged = False
@@ -620,8 +673,9 @@ class Daemon:
         t2 = host_us()
         extras = ()
         if cues is not None:
-            ttc_s = cues.time_to_contact_s(self.fps) if self.fps > 0 else math.inf
-            extras = (("expansion", cues.expansion_rate * (self.fps or 1.0)),  # 1/s
+            frame_s = self._frame_interval_s()
+            ttc_s = cues.time_to_contact_frames * frame_s
+            extras = (("expansion", cues.expansion_rate / frame_s),  # 1/s
                       ("ttc_s", ttc_s if math.isfinite(ttc_s) else -1.0),
                       ("balanceLR", cues.balance_lr), ("balanceTB", cues.balance_tb))
         self.link.submit(FlowSample(timestamp_us=frame.timestamp_us, capture_host_us=frame.capture_host_us,
@@ -637,6 +691,20 @@ class Daemon:
         self._prev = frame
         self._last_frame_host_s = now_s
         self.subset.observe_busy((t3 - t0) / 1e6, now_s)
+
+    def _gap_s(self, configured_s: float) -> float:
+        """``configured_s``, or :data:`_GAP_INTERVALS` typical processed intervals when the
+        frames are that far apart anyway (slow camera, large frame subset), s."""
+        typical_us = self._processed_intervals.typical
+        return configured_s if typical_us is None else max(configured_s, _GAP_INTERVALS * typical_us / 1e6)
+
+    def _frame_interval_s(self) -> float:
+        """Typical interval between processed frames from their capture timestamps, s (the
+        nominal 1/fps until two frames were processed): cues per frame become per second."""
+        typical_us = self._processed_intervals.typical
+        if typical_us is not None:
+            return typical_us / 1e6
+        return 1.0 / self.fps if self.fps > 0 else 1.0
 
     def _blind(self, now_s: float) -> None:
         """No frames: say so once. The link keeps the autopilot informed on its own
@@ -669,8 +737,9 @@ class Daemon:
         flow = f"flow {s.flow_x:+.2f},{s.flow_y:+.2f} px/frame q {s.quality}" if s else "flow -"
         c = looming_cues(self.stats.last_field) if self.stats.last_field is not None else None
         if c is not None and c.detections:
-            ttc = c.time_to_contact_s(self.fps) if self.fps > 0 else math.inf
-            flow += (f" | expansion {c.expansion_rate * (self.fps or 1.0):+.3f}/s ttc "
+            frame_s = self._frame_interval_s()
+            ttc = c.time_to_contact_frames * frame_s
+            flow += (f" | expansion {c.expansion_rate / frame_s:+.3f}/s ttc "
                      f"{'-' if not math.isfinite(ttc) else f'{ttc:.1f} s'} balance L/R {c.balance_lr:+.2f} "
                      f"T/B {c.balance_tb:+.2f}")
         if iv is None:

@@ -150,10 +150,11 @@ def run_cli(args, *, timeout=120, env=None) -> subprocess.CompletedProcess:
                           cwd=tempfile.gettempdir())
 
 
-def start_cli(args, *, env=None) -> subprocess.Popen:
-    """Start ``python -m firmware_py.cli ARGS`` without waiting."""
+def start_cli(args, *, env=None, stderr=subprocess.PIPE) -> subprocess.Popen:
+    """Start ``python -m firmware_py.cli ARGS`` without waiting; ``stderr`` as for Popen
+    (a file: the tests that need to know its device and inode, like journald's stream)."""
     return subprocess.Popen([sys.executable, "-m", "firmware_py.cli", *map(str, args)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(env),
+                            stdout=subprocess.PIPE, stderr=stderr, text=True, env=_env(env),
                             cwd=tempfile.gettempdir())
 
 

@@ -134,3 +134,28 @@ def test_blind_keepalive_sample_extends_instead_of_restarting():
     # ... but not beyond what ArduPilot accepts (< 0.5 s).
     integ.add_frame(timestamp_us=1_490_000, flow_x_px=0, flow_y_px=0, quality=0)
     assert integ.restart_count == 1
+
+
+def test_slow_steady_stream_is_integrated_not_a_gap_at_every_frame():
+    # A 2.5-4 fps camera or a slow engine: frames 0.3 s apart are a steady stream, not gaps.
+    integ = FlowIntegrator(focal_length_px=400.0)
+    feed(integ, range(0, 3_000_000, 300_000), flow=(0.0, 4.0))
+    assert integ.restart_count == 0
+    iv = integ.take()
+    assert iv.integration_time_us == 2_700_000 and iv.rate_y == pytest.approx(4.0 / 0.3 / 400.0)
+    # ... but never beyond 0.45 s between frames (ArduPilot needs a message every < 0.5 s).
+    integ.add_frame(timestamp_us=3_200_000, flow_x_px=0.0, flow_y_px=4.0, quality=200)
+    assert integ.restart_count == 1 and integ.gap_threshold_us == 450_000
+
+
+def test_frame_subset_growing_is_learned_within_a_few_frames():
+    # A 30 fps camera whose engine falls behind: every 11th frame (0.367 s) from then on.
+    integ = FlowIntegrator(focal_length_px=400.0)
+    feed(integ, [i * 33_333 for i in range(30)])
+    t = 29 * 33_333
+    for _ in range(20):
+        t += 11 * 33_333
+        integ.add_frame(timestamp_us=t, flow_x_px=0.0, flow_y_px=11.0, quality=200)
+    assert integ.restart_count == 4          # until the new spacing is the median of the last 9
+    assert integ.nominal_interval_us == pytest.approx(366_663, abs=1)
+    assert integ.elapsed_us == 16 * 366_663  # from the 4th such frame on: one continuous interval

@@ -5,8 +5,10 @@ and the flow's signs and size must match the file's known motion."""
 from __future__ import annotations
 
 import os
-import sys
+import re
 import statistics
+import subprocess
+import sys
 
 import pytest
 
@@ -113,3 +115,61 @@ def test_protocol_mavlink_alone_sends_both_flow_messages(flight_file, config_fil
     data, _ = _run(f"video:{flight_file}", None, config_file, "--protocol", "mavlink")
     names = [m.get_type() for m in parse_mavlink(data)]
     assert {"HEARTBEAT", "OPTICAL_FLOW", "OPTICAL_FLOW_RAD"} <= set(names)
+
+
+# -- configuration errors at start-up: exit 2 with the option named ------------------------
+
+@pytest.mark.parametrize("where", ["flag", "file"])
+def test_bad_synthetic_option_is_a_configuration_error(tmp_path, where):
+    if where == "flag":
+        args = ["--source", "synthetic:period=inf", "--serial", "/dev/null"]
+        origin = "command line"
+    else:
+        path = tmp_path / "emdflow.toml"
+        path.write_text('[source]\nuri = "synthetic:period=inf"\n')
+        args = ["--config", path, "--serial", "/dev/null"]
+        origin = str(path)
+    result = run_cli(args, timeout=60)
+    assert result.returncode == 2, result.stderr[-2000:]      # was an OverflowError traceback, 1
+    assert f"{origin}: [source] uri: synthetic option period=inf: must be a finite number" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_demo_with_a_bad_synthetic_option_exits_2():
+    result = run_cli(["--demo", "--source", "synthetic:noise=-1"], timeout=60)
+    assert result.returncode == 2
+    assert "synthetic option noise=-1: must be >= 0" in result.stderr
+
+
+# -- logging: journald's format only on systemd's own stream -------------------------------
+
+def test_stderr_is_journal_compares_device_and_inode(monkeypatch):
+    from firmware_py.cli import stderr_is_journal
+
+    st = os.fstat(2)
+    monkeypatch.setenv("JOURNAL_STREAM", f"{st.st_dev}:{st.st_ino}")
+    assert stderr_is_journal()
+    for inherited in (f"{st.st_dev}:{st.st_ino + 1}", "8:1234", "garbage", ""):
+        monkeypatch.setenv("JOURNAL_STREAM", inherited)
+        assert not stderr_is_journal(), inherited
+    monkeypatch.delenv("JOURNAL_STREAM")
+    assert not stderr_is_journal()
+
+
+def test_inherited_journal_stream_keeps_timestamped_lines(tmp_path):
+    """A child of a service inherits JOURNAL_STREAM with its stderr a pipe: plain lines."""
+    args = ["--source", "synthetic:"]  # no serial port: one ERROR line, exit 2
+    inherited = run_cli(args, timeout=60, env={"JOURNAL_STREAM": "8:1234"})
+    assert inherited.returncode == 2
+    line = inherited.stderr.strip().splitlines()[-1]
+    assert re.match(r"\d\d:\d\d:\d\d\.\d{3} ERROR +emdflowd: configuration: no serial port", line), line
+    # stderr really is the stream JOURNAL_STREAM names: priority prefix, no timestamp
+    with open(tmp_path / "journal.log", "w+") as stream:
+        st = os.fstat(stream.fileno())
+        code = subprocess.run([sys.executable, "-m", "firmware_py.cli", *args], stderr=stream, timeout=60,
+                              env={**os.environ, "JOURNAL_STREAM": f"{st.st_dev}:{st.st_ino}"},
+                              cwd=tmp_path).returncode
+        stream.seek(0)
+        text = stream.read()
+    assert code == 2
+    assert text.strip().splitlines()[-1].startswith("<3>emdflowd: configuration: no serial port"), text

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import os
 import sys
 import dataclasses
@@ -13,7 +14,7 @@ import pytest
 from firmware_py.cli import _apply_flags, build_parser
 from firmware_py.config import SECTIONS, Config, ConfigError, load_config
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # shared helpers
-from daemon_util import REPO, run_cli  # noqa: E402
+from daemon_util import REPO, Drain, PtyPair, engine_backend, parse_msp_v2, run_cli  # noqa: E402
 
 EXAMPLE = REPO / "deploy" / "emdflow.toml"
 
@@ -63,6 +64,58 @@ def test_bad_config_names_file_and_key(tmp_path, text, needle):
 def test_missing_file_is_named(tmp_path):
     with pytest.raises(ConfigError, match="nope.toml: configuration file not found"):
         load_config(tmp_path / "nope.toml")
+
+
+def test_unreadable_files_are_config_errors_that_name_the_file(tmp_path):
+    latin1 = tmp_path / "latin1.toml"  # a "°" saved by a Latin-1 editor
+    latin1.write_bytes(b"# horizontal field of view 71.9\xb0\n[source]\nuri = 'synthetic:'\n")
+    with pytest.raises(ConfigError, match=r"latin1.toml: not UTF-8 text \(byte 0xb0 at offset 31\)"):
+        load_config(latin1)
+    folder = tmp_path / "conf.toml"
+    folder.mkdir()
+    with pytest.raises(ConfigError, match="conf.toml: is a directory"):
+        load_config(folder)
+    # ... and the daemon exits 2 with that line (systemd does not restart it), no traceback
+    for path, needle in ((latin1, "not UTF-8 text"), (folder, "is a directory")):
+        result = run_cli(["--config", path, "--serial", "/dev/null"], timeout=60)
+        assert result.returncode == 2, result.stderr[-2000:]
+        assert f"{path}: {needle}" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_msp_counts_per_degree_is_a_link_key(tmp_path):
+    config = load_config(_write(tmp_path, "[link]\nautopilot = 'inav'\nmsp_counts_per_degree = 21\n"))
+    assert config.link.msp_counts_per_degree == 21.0
+    assert Config().link.msp_counts_per_degree == 10.5          # INAV's default opflow_scale
+    with pytest.raises(ConfigError, match=r"\[link\] msp_counts_per_degree = 0.0: must be >= 0.1"):
+        load_config(_write(tmp_path, "[link]\nmsp_counts_per_degree = 0\n"))
+
+
+def test_msp_counts_per_degree_reaches_the_wire(tmp_path):
+    """The daemon's link sends -21 counts per degree when told (it must equal INAV's opflow_scale)."""
+    log_path = tmp_path / "sent.csv"
+    path = _write(tmp_path, f'[source]\nuri = "synthetic:u=2,v=1"\nwidth = 96\nheight = 72\n'
+                            f'[engine]\nbackend = "{engine_backend()}"\nmodel = "paper"\n'
+                            f'[link]\nautopilot = "inav"\nbaud = 921600\nmsp_counts_per_degree = 21.0\n'
+                            f'message_log = "{log_path}"\n')
+    pty = PtyPair()
+    drain = Drain(pty.master)
+    try:
+        result = run_cli(["--config", path, "--serial", pty.path, "--frames", 40])
+    finally:
+        data = drain.stop()
+        pty.close()
+    assert result.returncode == 0, result.stderr[-3000:]
+    with open(log_path, newline="") as f:
+        rows = [r for r in csv.DictReader(f)
+                if r["message"] == "MSP2_SENSOR_OPTIC_FLOW" and int(r["quality"]) > 0]
+    assert len(rows) >= 10
+    for axis in ("x", "y"):  # remainder carried from message to message: the sums agree within 1
+        counts = sum(int(r[f"motion_{axis}"]) for r in rows)
+        degrees = sum(math.degrees(float(r[f"integrated_{axis}"])) for r in rows)
+        assert abs(degrees) > 1.0 and counts == pytest.approx(-21.0 * degrees, abs=1.0)
+    on_wire = [p for fn, p in parse_msp_v2(data) if fn == 0x1F02 and p[0] > 0]
+    assert ([int.from_bytes(p[5:9], "little", signed=True) for p in on_wire]
+            == [int(r["motion_y"]) for r in rows])
 
 
 def test_values_are_normalised_and_typed(tmp_path):

@@ -13,7 +13,7 @@ import pytest
 
 from firmware_py.sdnotify import Notifier
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # shared helpers
-from daemon_util import REPO  # noqa: E402
+from daemon_util import REPO, opencl_available, run_cli  # noqa: E402
 
 DEPLOY = REPO / "deploy"
 
@@ -71,7 +71,8 @@ def test_unit_has_the_required_directives():
                  "NoNewPrivileges=yes", "ProtectSystem=strict", "ProtectHome=yes", "PrivateTmp=yes",
                  "CacheDirectory=emdflow", "Environment=POCL_CACHE_DIR=/var/cache/emdflow/pocl",
                  "DevicePolicy=closed", "DeviceAllow=char-video4linux rw", "DeviceAllow=char-ttyAMA rw",
-                 "DeviceAllow=char-drm rw", "RestartPreventExitStatus=2", "IPAddressDeny=any"):
+                 "DeviceAllow=char-drm rw", "RestartPreventExitStatus=2", "IPAddressDeny=any",
+                 "DeviceAllow=char-ttyTHS rw"):  # Jetson's header UARTs (/dev/ttyTHS*)
         assert re.search(rf"^{re.escape(line)}$", unit, re.M), line
     assert re.search(r"^WatchdogSec=\d+", unit, re.M)
     assert re.search(r"^ExecStart=\S*emdflowd --config /etc/emdflow/emdflow.toml$", unit, re.M)
@@ -123,3 +124,75 @@ def test_udev_rules_are_well_formed():
     for line in rules:
         for item in line.split(", "):
             assert re.fullmatch(r'[A-Z]+(\{[a-zA-Z_]+\})?(==|\+=|=)"[^"]*"', item), item
+
+
+def _dry_run(*args):
+    return subprocess.run(["bash", str(DEPLOY / "install.sh"), "--dry-run", *map(str, args)],
+                          capture_output=True, text=True, timeout=60)
+
+
+def _unit_environment():
+    return dict(line.split("=", 2)[1:] for line in _unit().splitlines() if line.startswith("Environment="))
+
+
+def test_install_creates_the_service_directories_before_the_engine_check(tmp_path):
+    """The engine check runs as the service user before the service ever started: its home
+    and PoCL's cache must exist (systemd makes them only at the first start)."""
+    env = _unit_environment()
+    assert {"HOME", "XDG_CACHE_HOME", "POCL_CACHE_DIR"} <= env.keys()
+    unit = _unit()
+    assert "StateDirectory=emdflow" in unit and env["HOME"] == "/var/lib/emdflow"
+    assert "CacheDirectory=emdflow" in unit and env["POCL_CACHE_DIR"].startswith("/var/cache/emdflow/")
+    result = _dry_run("--prefix", tmp_path / "opt", "--user", "flowuser")
+    assert result.returncode == 0, result.stderr
+    out = result.stdout
+    made = re.findall(r"^\+ install -d -o flowuser -g flowuser -m \d+ (.+)$", out, re.M)
+    made = {path for line in made for path in line.split()}
+    assert {env["HOME"], env["XDG_CACHE_HOME"], env["POCL_CACHE_DIR"]} <= made, out
+    assert out.index("useradd --system") < out.index("install -d -o flowuser") < out.index("-m venv")
+    # the check command printed at the end runs in the unit's environment
+    check = next(line for line in out.splitlines() if "emdflowd --demo" in line)
+    assert check.split()[:3] == ["sudo", "-u", "flowuser"] and check.split()[3] == "env", check
+    for key in ("HOME", "XDG_CACHE_HOME", "POCL_CACHE_DIR"):
+        assert f" {key}={env[key]} " in check, (key, check)
+
+
+def test_readme_engine_check_uses_the_units_environment():
+    readme = (REPO / "README.md").read_text()
+    section = readme[readme.index("### Installing the service"):readme.index("### Tests")]
+    command = re.search(r"sudo -u emdflow env (.*?)/opt/emdflow/venv/bin/emdflowd --demo", section, re.S)
+    assert command, "no engine check with the unit's environment in the README"
+    assigned = dict(item.split("=", 1) for item in command.group(1).replace("\\", " ").split())
+    env = _unit_environment()
+    assert assigned == {key: env[key] for key in ("HOME", "XDG_CACHE_HOME", "POCL_CACHE_DIR")}
+
+
+@pytest.mark.skipif(not opencl_available(), reason="no OpenCL platform")
+def test_engine_check_works_without_a_home_once_the_cache_exists(tmp_path):
+    """A fresh service user has no writable home; with the cache directory install.sh
+    creates, passed as the unit's environment passes it, the engine check runs on PoCL."""
+    cache = tmp_path / "cache"
+    (cache / "pocl").mkdir(parents=True)
+    env = {"HOME": "/proc/emdflow-home", "XDG_CACHE_HOME": str(cache), "POCL_CACHE_DIR": str(cache / "pocl")}
+    result = run_cli(["--demo", "--frames", 20], timeout=300, env=env)
+    assert result.returncode == 0, result.stderr[-2000:] + result.stdout[-2000:]
+    assert any((cache / "pocl").iterdir())                      # kernels cached where the unit says
+
+
+def test_install_stops_on_an_old_python_before_changing_anything(tmp_path):
+    old = tmp_path / "python3.9"
+    old.write_text("#!/bin/sh\necho 3.9.2\nexit 1\n")         # stands in for Debian 11's python3
+    old.chmod(0o755)
+    result = _dry_run("--python", old)
+    assert result.returncode == 1
+    assert f"'{old}' is Python 3.9.2; emdflow needs Python >= 3.11 (tomllib)" in result.stderr
+    assert "--python python3.11" in result.stderr
+    for step in ("apt-get", "useradd", "install -d", "venv"):
+        assert step not in result.stdout, step
+    missing = _dry_run("--python", tmp_path / "nothere")
+    assert missing.returncode == 1 and "cannot run" in missing.stderr and "useradd" not in missing.stdout
+    good = _dry_run("--python", sys.executable, "--prefix", tmp_path / "opt")
+    assert good.returncode == 0, good.stderr
+    assert f"{sys.executable} -m venv {tmp_path}/opt/venv" in good.stdout
+    versioned = _dry_run("--python", "python3.11", "--prefix", tmp_path / "opt")
+    assert "python3.11 python3.11-venv" in versioned.stdout     # Ubuntu 22.04's extra interpreter

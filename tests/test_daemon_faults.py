@@ -200,14 +200,20 @@ def test_sigterm_stops_cleanly_with_systemd_notifications(tmp_path):
     config = _config(tmp_path, "[source]\nwidth = 96\nheight = 72\n")
     pty = PtyPair()
     drain = Drain(pty.master)
+    # systemd's stream: JOURNAL_STREAM names the device and inode of the daemon's stderr
+    stderr = open(tmp_path / "journal.log", "w+")
+    st = os.fstat(stderr.fileno())
     daemon = start_cli(["--config", config, "--source", "synthetic:u=1,v=1", "--realtime", "--serial", pty.path],
-                       env={"NOTIFY_SOCKET": sock_path, "WATCHDOG_USEC": "400000", "JOURNAL_STREAM": "8:1234"})
+                       env={"NOTIFY_SOCKET": sock_path, "WATCHDOG_USEC": "400000",
+                            "JOURNAL_STREAM": f"{st.st_dev}:{st.st_ino}"}, stderr=stderr)
     try:
         messages = [server.recv(4096).decode()]
         while not any(m.startswith("WATCHDOG=1") for m in messages):
             messages.append(server.recv(4096).decode())
         daemon.send_signal(signal.SIGTERM)
-        out, err = daemon.communicate(timeout=30)
+        daemon.communicate(timeout=30)
+        stderr.seek(0)
+        err = stderr.read()
         server.settimeout(1)
         try:
             while True:
@@ -220,6 +226,7 @@ def test_sigterm_stops_cleanly_with_systemd_notifications(tmp_path):
         data = drain.stop()
         pty.close()
         server.close()
+        stderr.close()
     assert daemon.returncode == 0, err[-3000:]
     assert messages[0].startswith("READY=1")
     assert "STOPPING=1" in messages

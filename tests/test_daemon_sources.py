@@ -3,9 +3,10 @@ synthetic flights, V4L2 raw-buffer conversion (the camera itself is the only moc
 
 from __future__ import annotations
 
-import os
-import sys
 import math
+import os
+import re
+import sys
 
 import cv2
 import numpy as np
@@ -174,13 +175,23 @@ def test_raw_short_buffer_is_an_error():
 
 
 class _FakeV4L2Capture:
-    """Stands in for cv2.VideoCapture on a /dev/video device (none exists here)."""
+    """Stands in for cv2.VideoCapture on a /dev/video device (none exists here).
 
-    def __init__(self, device, api, *, opened=True, frames=3):
+    By default a GREY camera delivering the same 64x48 picture ``frames`` times, whatever
+    size was asked. ``buffers(i)`` gives the raw buffer of read ``i`` instead (None: the
+    driver read fails), ``size`` and ``fourcc`` what the driver reports, ``interval_s`` the
+    frame period (reads block like a camera's).
+    """
+
+    def __init__(self, device, api, *, opened=True, frames=3, buffers=None, size=None, fourcc=None,
+                 interval_s=0.0):
         self.device, self.api, self.opened = device, api, opened
         self.props: dict[int, float] = {}
         self.frames = frames
         self.luma = _luma(64, 48)
+        self.buffers, self.interval_s, self.reads = buffers, interval_s, 0
+        self.size = size or (self.luma.shape[1], self.luma.shape[0])
+        self.fourcc = fourcc
         self.released = False
 
     def isOpened(self):
@@ -196,10 +207,20 @@ class _FakeV4L2Capture:
 
             return time.monotonic() * 1000.0 - 3.0
         if prop in (cv2.CAP_PROP_FRAME_WIDTH, cv2.CAP_PROP_FRAME_HEIGHT):
-            return self.luma.shape[1 if prop == cv2.CAP_PROP_FRAME_WIDTH else 0]  # ignores requests
+            return self.size[0 if prop == cv2.CAP_PROP_FRAME_WIDTH else 1]  # ignores requests
+        if prop == cv2.CAP_PROP_FOURCC and self.fourcc:
+            return cv2.VideoWriter_fourcc(*self.fourcc)
         return self.props.get(prop, 0.0)
 
     def read(self):
+        if self.interval_s:
+            import time
+
+            time.sleep(self.interval_s)
+        if self.buffers is not None:
+            self.reads += 1
+            raw = self.buffers(self.reads - 1)
+            return (False, None) if raw is None else (True, raw)
         if self.frames == 0:
             return False, None
         self.frames -= 1
@@ -263,3 +284,342 @@ def test_video_source_color_file_gives_luma(tmp_path):
         _check_frame(frame, 96, 72)
         assert np.abs(frame.image.astype(int) - expected).mean() < 4  # lossy MJPG, same picture
     assert frames[1].timestamp_us == 40_000
+
+
+# -- V4L2: a corrupt buffer is a bad frame, not a lost camera ------------------------------
+
+def _jpeg(image):
+    return cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].reshape(1, -1)
+
+
+def _corrupt(pixel_format, luma):
+    """What a USB bandwidth glitch leaves in a buffer of each format."""
+    if pixel_format == "MJPG":
+        jpeg = _jpeg(luma)
+        return jpeg[:, : jpeg.size // 2].copy()                      # truncated JPEG
+    return np.zeros((1, luma.size // 3), np.uint8)                 # short GREY / YUYV buffer
+
+
+def _raw(pixel_format, luma):
+    if pixel_format == "MJPG":
+        return _jpeg(luma)
+    if pixel_format == "YUYV":
+        packed = np.full(luma.shape + (2,), 128, np.uint8)
+        packed[:, :, 0] = luma
+        return packed.reshape(1, -1)
+    return luma.reshape(1, -1).copy()
+
+
+@pytest.mark.parametrize("pixel_format", ["MJPG", "GREY", "YUYV"])
+def test_v4l2_corrupt_buffer_is_skipped_counted_and_logged(pixel_format, caplog):
+    luma = _luma(64, 48)
+    bad = {2, 3, 6}  # reads whose buffer is damaged
+
+    def buffers(i):
+        return _corrupt(pixel_format, luma) if i in bad else _raw(pixel_format, luma)
+
+    source = V4L2Source("0", width=64, height=48, pixel_format=pixel_format,
+                        capture_factory=lambda d, a: _FakeV4L2Capture(d, a, buffers=buffers, fourcc=pixel_format))
+    source.open()
+    with caplog.at_level("WARNING", logger="emdflowd.v4l2"):
+        frames = [source.read() for _ in range(5)]
+    # the damaged buffers are gone, the good ones delivered; the indices show the gaps
+    assert [f.index for f in frames] == [0, 1, 4, 5, 7]
+    for frame in frames:
+        _check_frame(frame, 64, 48)
+        assert np.abs(frame.image.astype(int) - luma).mean() < 3
+    assert source.bad_frames == 3
+    skipped = [r for r in caplog.records if "frame skipped" in r.getMessage()]
+    assert len(skipped) == 1                                           # rate-limited
+    assert f"v4l2:0: frame 2: {pixel_format} frame of" in skipped[0].getMessage()
+    assert skipped[0].levelname == "WARNING"
+
+
+def test_v4l2_run_of_bad_buffers_or_failed_read_is_a_source_error():
+    luma = _luma(64, 48)
+    source = V4L2Source("0", width=64, height=48, pixel_format="MJPG", bad_frames_before_reopen=4,
+                        capture_factory=lambda d, a: _FakeV4L2Capture(
+                            d, a, buffers=lambda i: _jpeg(luma) if i == 0 else _corrupt("MJPG", luma)))
+    source.open()
+    assert source.read().index == 0
+    with pytest.raises(SourceError, match=r"v4l2:0: 4 frames in a row could not be converted \(last: MJPG frame"):
+        source.read()
+    assert source.bad_frames == 4
+    # a failed driver read is still the camera itself: no skipping
+    source = V4L2Source("0", width=64, height=48, pixel_format="MJPG",
+                        capture_factory=lambda d, a: _FakeV4L2Capture(d, a, buffers=lambda i: None))
+    source.open()
+    with pytest.raises(SourceError, match="v4l2:0: read failed"):
+        source.read()
+    assert source.bad_frames == 0
+
+
+def test_daemon_flies_through_a_corrupt_v4l2_frame_without_reopening():
+    """The reviewer's case end to end: one undecodable MJPG buffer in a 100 frames/s stream."""
+    from firmware_py.config import Config
+    from firmware_py.daemon import Daemon
+    from daemon_util import Drain, PtyPair, engine_backend, parse_mavlink
+
+    size = (96, 72)
+    flight = flight_frames(30, flow=(1.5, 1.0), width=size[0], height=size[1])
+    opens = []
+
+    def buffers(i):
+        return _corrupt("MJPG", flight[0]) if i == 20 else _jpeg(flight[i % len(flight)])
+
+    def factory():
+        return V4L2Source("0", width=size[0], height=size[1], pixel_format="MJPG",
+                          capture_factory=lambda d, a: opens.append(d) or _FakeV4L2Capture(
+                              d, a, buffers=buffers, size=size, fourcc="MJPG", interval_s=0.01))
+
+    config = Config()
+    config.set("source", "uri", "v4l2:0")
+    config.set("source", "pixel_format", "MJPG")
+    config.set("optics", "focal_length_px", 100.0)
+    config.set("engine", "backend", engine_backend())
+    config.set("engine", "model", "paper")
+    config.set("daemon", "blind_after_s", 1.0)   # a reopen (>= 0.5 s back-off) shows in reopens
+    config.frames = 40
+    pty = PtyPair()
+    config.set("link", "port", pty.path)
+    config.set("link", "baud", 921600)
+    drain = Drain(pty.master)
+    made = []
+    daemon = Daemon(config, source_factory=lambda: made.append(factory()) or made[-1])
+    try:
+        assert daemon.run() == 0
+    finally:
+        data = drain.stop()
+        pty.close()
+    assert len(opens) == 1 and daemon.stats.reopens == 0 and daemon.stats.blind_periods == 0
+    assert daemon.stats.processed == 40
+    assert sum(source.bad_frames for source in made) == 1
+    assert daemon.stats.bad_frames == 1  # the status line's "bad" counts it
+    flows = [m for m in parse_mavlink(data) if m.get_type() == "OPTICAL_FLOW"]
+    assert flows and flows[-1].quality > 0
+
+
+# -- aspect ratio: one scale for both axes ------------------------------------------------
+
+def test_fit_to_centre_crops_to_the_asked_aspect_ratio():
+    from firmware_py.sources import centre_crop, fit_to
+
+    image = np.arange(400 * 640, dtype=np.uint32).astype(np.uint8).reshape(400, 640)
+    assert centre_crop(640, 400, 320, 240) == (53, 0, 533, 400)        # 16:10 -> 4:3: sides cut
+    assert centre_crop(640, 480, 320, 180) == (0, 60, 640, 360)        # 4:3 -> 16:9: rows cut
+    assert centre_crop(640, 480, 320, 240) == (0, 0, 640, 480)         # same aspect: all of it
+    out = fit_to(image, 320, 240)
+    assert out.shape == (240, 320) and out.flags.c_contiguous
+    expected = cv2.resize(np.ascontiguousarray(image[:, 53:586]), (320, 240), interpolation=cv2.INTER_AREA)
+    assert np.array_equal(out, expected)
+    assert np.array_equal(fit_to(image, 400, 400), image[:, 120:520])  # crop only, no resampling
+    same = image[:240, :320].copy()
+    assert fit_to(same, 320, 240) is same                             # the right size: untouched
+
+
+def test_v4l2_other_aspect_ratio_is_cropped_not_stretched(caplog):
+    """A camera that falls back to 640x400 when 320x240 was asked: equal motion on both axes
+    of the sensor must stay equal in the processed frames (the link has one focal length)."""
+    sensor = flight_frames(6, flow=(5.0, 5.0), width=640, height=400)  # 3 px/frame processed
+    source = V4L2Source("/dev/null", width=320, height=240, capture_factory=lambda d, a: _FakeV4L2Capture(
+        d, a, buffers=lambda i: sensor[i].reshape(1, -1).copy(), size=(640, 400)))
+    with caplog.at_level("INFO", logger="emdflowd.v4l2"):
+        source.open()
+    frames = [source.read().image for _ in range(6)]
+    window = cv2.createHanningWindow((320, 240), cv2.CV_64F)
+    shifts = np.array([cv2.phaseCorrelate(a.astype(np.float64), b.astype(np.float64), window)[0]
+                       for a, b in zip(frames, frames[1:])])
+    dx, dy = np.median(shifts, axis=0)
+    assert dx == pytest.approx(5.0 * 320 / 533, abs=0.1)    # both axes scaled by 0.6
+    assert dy == pytest.approx(5.0 * 240 / 400, abs=0.1)
+    assert dx / dy == pytest.approx(1.0, abs=0.03)          # stretched, it was 0.83
+    warning = [r for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warning) == 1
+    text = warning[0].getMessage()
+    for part in ("asked for 320x240, the camera delivers 640x400", "centre 533x400",
+                 "53 columns cut on the left, 54 on the right", "scaled by 0.600 on both axes",
+                 "focal_length_px must be the focal length of these 320x240 frames"):
+        assert part in text, text
+    # what the focal length refers to: 83.3 % of the delivered width is shown
+    assert source.crop_fraction == (533 / 640, 1.0)
+    fov = 70.0
+    f_delivered = 640 / 2 / math.tan(math.radians(fov) / 2)            # px of the 640x400 image
+    assert source.focal_length_for_hfov(fov) == pytest.approx(f_delivered * 320 / 533, rel=1e-9)
+
+
+def test_v4l2_same_aspect_ratio_is_only_scaled(caplog):
+    source = V4L2Source("0", width=32, height=24, capture_factory=_FakeV4L2Capture)  # delivers 64x48
+    with caplog.at_level("INFO", logger="emdflowd.v4l2"):
+        source.open()
+    assert source.crop_fraction == (1.0, 1.0)
+    assert source.focal_length_for_hfov(90.0) == pytest.approx(16.0)
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]
+    assert "camera delivers 64x48, scaled by 0.500 to 32x24" in caplog.text
+
+
+def test_daemon_focal_length_from_fov_accounts_for_the_crop():
+    from firmware_py.config import Config
+    from firmware_py.daemon import Daemon
+
+    sensor = flight_frames(4, width=640, height=400)
+
+    def factory():
+        return V4L2Source("0", width=320, height=240, capture_factory=lambda d, a: _FakeV4L2Capture(
+            d, a, buffers=lambda i: sensor[i % 4].reshape(1, -1).copy(), size=(640, 400), interval_s=0.01))
+
+    config = Config()
+    config.set("source", "uri", "v4l2:0")
+    config.set("optics", "horizontal_fov_deg", 70.0)
+    config.set("engine", "backend", "numpy")
+    config.frames = 1
+    daemon = Daemon(config, source_factory=factory, link_factory=lambda f: _NullLink())
+    daemon.run()
+    f_delivered = 640 / 2 / math.tan(math.radians(70.0) / 2)
+    assert daemon.focal_length_px == pytest.approx(f_delivered * 320 / 533, rel=1e-6)
+
+
+def test_camera_absent_at_start_gets_its_focal_length_when_it_opens():
+    """A camera that is not there at start-up: the daemon starts with the focal length of
+    the asked size; when the camera opens and delivers another aspect ratio (cropped), the
+    link gets the focal length of the crop from then on."""
+    from firmware_py.config import Config
+    from firmware_py.daemon import Daemon
+    from firmware_py.sources import SourceError
+
+    sensor = flight_frames(4, width=640, height=400)
+    attempts = []
+
+    class Late(V4L2Source):
+        def open(self):
+            attempts.append(1)
+            if len(attempts) == 1:
+                raise SourceError("v4l2:0: no such device (unplugged)")
+            super().open()
+
+    def factory():
+        return Late("0", width=320, height=240, capture_factory=lambda d, a: _FakeV4L2Capture(
+            d, a, buffers=lambda i: sensor[i % 4].reshape(1, -1).copy(), size=(640, 400), interval_s=0.01))
+
+    config = Config()
+    config.set("source", "uri", "v4l2:0")
+    config.set("optics", "horizontal_fov_deg", 70.0)
+    config.set("engine", "backend", "numpy")
+    config.set("daemon", "reopen_backoff_s", 0.05)
+    config.frames = 2
+    links = []
+    daemon = Daemon(config, source_factory=factory, link_factory=lambda f: links.append(_NullLink(f)) or links[-1])
+    assert daemon.run() == 0
+    f_asked = 320 / 2 / math.tan(math.radians(70.0) / 2)
+    f_crop = 640 / 2 / math.tan(math.radians(70.0) / 2) * 320 / 533
+    assert len(attempts) >= 2 and links[0].focal_lengths == [pytest.approx(f_asked), pytest.approx(f_crop)]
+    assert daemon.focal_length_px == pytest.approx(f_crop)
+
+
+class _NullLink:
+    """A link that sends nothing and records its focal lengths (what those tests look at)."""
+
+    def __init__(self, focal_length_px=None):
+        self.stats = {}
+        self.focal_lengths = [focal_length_px]
+
+    def set_focal_length_px(self, focal_length_px):
+        self.focal_lengths.append(focal_length_px)
+
+    def submit(self, sample):
+        pass
+
+    def service(self, now_us):
+        pass
+
+    def latencies_us(self):
+        return []
+
+    def close(self):
+        pass
+
+
+# -- video: YUV files through OpenCV's conversion, gray files raw and exact ----------------
+
+def test_video_yuv_file_reads_without_opencv_warnings(tmp_path, capfd):
+    gray = flight_frames(12, width=96, height=72)
+    path = tmp_path / "flight.mp4"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 25.0, (96, 72), isColor=False)
+    for frame in gray:
+        writer.write(frame)
+    writer.release()
+    capfd.readouterr()
+    with open_source(f"video:{path}") as source:
+        frames = _read_all(source)
+        assert not source.raw_gray
+    err = capfd.readouterr().err
+    assert "Unknown/unsupported picture format" not in err, err[:500]   # was one line per frame
+    assert len(frames) == 12
+    for frame, expected in zip(frames, gray):
+        _check_frame(frame, 96, 72)
+        assert np.abs(frame.image.astype(int) - expected).mean() < 4   # full-range gray, not raw luma
+
+
+def test_video_gray_ffv1_stays_raw_and_exact(clip, capfd):
+    path, frames = clip
+    capfd.readouterr()
+    with open_source(f"video:{path}") as source:
+        assert source.raw_gray
+        got = _read_all(source)
+    assert all(np.array_equal(f.image, frames[i]) for i, f in enumerate(got)) and len(got) == len(frames)
+    assert "Unknown/unsupported" not in capfd.readouterr().err
+
+
+def test_video_other_aspect_ratio_is_cropped(clip, caplog):
+    path, frames = clip  # 160x120
+    with caplog.at_level("WARNING", logger="emdflowd.video"):
+        source = open_source(f"video:{path}", width=160, height=90)
+    with source:
+        frame = source.read()
+    assert np.array_equal(frame.image, frames[0][15:105])
+    assert source.crop_fraction == (1.0, 0.75)
+    assert "is 160x120, [source] asks for 160x90 (another aspect ratio): its centre 160x90" in caplog.text
+
+
+# -- synthetic: every numeric option finite and within limits ------------------------------
+
+@pytest.mark.parametrize("option, message", [
+    ("period=inf", "period=inf: must be a finite number"),
+    ("period=nan", "period=nan: must be a finite number"),
+    ("period=1e7", "period=1e7: must be > 0 and <= 3600"),
+    ("period=0", "period=0: must be > 0"),
+    ("u=inf", "u=inf: must be a finite number"),
+    ("v=-1e300", "v=-1e300: must be >= -100 and <= 100"),
+    ("circle=-2", "circle=-2: must be >= 0"),
+    ("noise=-1", "noise=-1: must be >= 0"),
+    ("noise=nan", "noise=nan: must be a finite number"),
+    ("seed=-1", "seed=-1: must be >= 0"),
+    ("seed=1.5", "seed='1.5': not an integer"),
+    ("supersample=0", "supersample=0: must be >= 1 and <= 16"),
+    ("supersample=1000", "supersample=1000: must be >= 1 and <= 16"),
+])
+def test_synthetic_options_must_be_finite_and_sane(option, message):
+    with pytest.raises(ValueError, match=re.escape(f"synthetic option {message}")):
+        parse_uri(f"synthetic:{option}")
+    with pytest.raises(SourceError, match=re.escape(message)):
+        make_source(f"synthetic:{option}")
+
+
+def test_synthetic_long_circle_costs_nothing_up_front():
+    import time
+
+    open_source("synthetic:", width=64, height=48).read()  # texture and imports loaded
+    t0 = time.monotonic()
+    source = open_source("synthetic:period=3600", width=64, height=48, fps=1000)  # 3.6 M frames a loop
+    frame = source.read()
+    assert time.monotonic() - t0 < 0.5   # was a per-frame table: 2 s and 300 MB here
+    _check_frame(frame, 64, 48)
+    assert source.loop_frames == 3_600_000
+
+
+def test_synthetic_circle_frames_move_as_the_truth_says():
+    source = open_source("synthetic:circle=3,period=0.4,noise=0", width=96, height=72, fps=100)
+    frames = [source.read().image.astype(np.float64) for _ in range(41)]
+    window = cv2.createHanningWindow((96, 72), cv2.CV_64F)
+    for k in (1, 7, 13, 22, 31, 40):
+        (dx, dy), _ = cv2.phaseCorrelate(frames[k - 1], frames[k], window)
+        assert (dx, dy) == pytest.approx(source.truth(k), abs=0.3), k

@@ -114,9 +114,12 @@ def make_link_no_port(**kw):
 
 
 def fly(peer, *, flow_x, flow_y, frames=100, **kw):
+    """Flow messages after the start marker (quality 0 at the first frame, checked here)."""
     link = make_link(peer, autopilot="both", **kw)
     messages = strict_parse(fly_and_close(link, peer, frames, fps=FPS, flow_x=flow_x, flow_y=flow_y))
-    return link, of_type(messages, "OPTICAL_FLOW"), of_type(messages, "OPTICAL_FLOW_RAD")
+    flow, rad = of_type(messages, "OPTICAL_FLOW"), of_type(messages, "OPTICAL_FLOW_RAD")
+    assert flow[0].quality == 0 and flow[0].flow_x == flow[0].flow_y == 0 and rad[0].quality == 0
+    return link, flow[1:], rad[1:]
 
 
 def test_forward_flight_gives_positive_y(peer):
@@ -136,6 +139,19 @@ def test_forward_flight_gives_positive_y(peer):
     # Deci-pixels, same axes, remainder carried: the sum matches 10 × Σv.
     total_v = 1.2 * sum(m.integration_time_us for m in rad) / 1e6 * FPS
     assert sum(m.flow_y for m in flow) == pytest.approx(10 * total_v, abs=1)
+
+
+def test_focal_length_can_change_for_the_next_reports(peer):
+    """``set_focal_length_px`` (the daemon's call when a camera opened late delivers a
+    cropped image): the rates of the reports after it use the new focal length."""
+    link = make_link(peer, autopilot="both")
+    with pytest.raises(ValueError, match="focal_length_px"):
+        link.set_focal_length_px(float("nan"))
+    link.set_focal_length_px(2 * F)
+    messages = strict_parse(fly_and_close(link, peer, 60, fps=FPS, flow_x=0.0, flow_y=1.2))
+    flow = of_type(messages, "OPTICAL_FLOW")[1:]
+    assert len(flow) > 10
+    assert all(m.flow_rate_y == pytest.approx(1.2 * FPS / (2 * F), rel=0.01) for m in flow)
 
 
 def test_rightward_flight_gives_negative_x(peer):
@@ -228,7 +244,7 @@ def test_blind_quality_zero_frames_from_the_daemon(peer):
     finally:
         link.close()
     rad = of_type(strict_parse(bytes(sink)), "OPTICAL_FLOW_RAD")
-    blind = [m for m in rad if m.quality == 0]
+    blind = [m for m in rad[1:] if m.quality == 0]  # rad[0]: the start marker of the first frame
     assert len(blind) == 10
     assert blind[0].integration_time_us == 250_000
     assert all(m.integration_time_us == 100_000 for m in blind[1:])

@@ -88,10 +88,13 @@ def peer(tmp_path):
 
 
 def run_inav(peer, *, flow_x, flow_y, frames=200, focal_length_px=400.0, **kw):
+    """(quality, motionX, motionY) after the start marker (quality 0 at the first frame)."""
     link = open_link(LinkConfig(port=peer.path, baud=115200, autopilot="inav", focal_length_px=focal_length_px,
                                 **kw))
     assert isinstance(link, MspLink)
-    return link, optic_flow(fly_and_close(link, peer, frames, fps=FPS, flow_x=flow_x, flow_y=flow_y))
+    messages = optic_flow(fly_and_close(link, peer, frames, fps=FPS, flow_x=flow_x, flow_y=flow_y))
+    assert messages[0] == (0, 0, 0)
+    return link, messages[1:]
 
 
 def test_rate_default_50hz_from_capture_time(peer):

@@ -177,3 +177,37 @@ def test_message_log(tmp_path, suffix):
         assert int(row["integration_time_us"]) == msg.integration_time_us
         assert float(row["integrated_y"]) == pytest.approx(msg.integrated_y, rel=1e-6)
         assert int(row["latency_us"]) >= 0
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".jsonl"])
+def test_message_log_survives_a_daemon_restart(tmp_path, suffix):
+    """systemd restarts the daemon after a watchdog kill or a hung camera: the restarted
+    link appends to the flight's log (one CSV header), even after a row torn by a power loss."""
+    log_path = tmp_path / ("sent" + suffix)
+    sent = []
+    for run in range(2):
+        peer = PtyPeer(tmp_path / "ttyFC")
+        link = open_link(LinkConfig(port=peer.path, baud=115200, autopilot="px4", focal_length_px=400.0,
+                                    message_log=str(log_path)))
+        sink = bytearray()
+        try:
+            FrameFeeder(link, fps=FPS).frames(30, flow_y=1.0, peer=peer, sink=sink)
+        finally:
+            link.close()
+            sink.extend(peer.read())
+            peer.close()
+        sent += [m.get_type() for m in robust_parse(bytes(sink))]
+        if run == 0:
+            with open(log_path, "a") as f:
+                f.write('1234,OPTICAL_FLOW_RAD,56,' if suffix == ".csv" else '{"host_us":1234,"mess')
+    lines = log_path.read_text().splitlines()
+    torn = [i for i, line in enumerate(lines) if line.startswith(("1234,", '{"host_us":1234'))]
+    assert len(torn) == 1                          # the torn row stays on a line of its own
+    del lines[torn[0]]
+    if suffix == ".csv":
+        assert sum(line.startswith("host_us,") for line in lines) == 1
+        rows = list(csv.DictReader(lines))
+    else:
+        rows = [json.loads(line) for line in lines]
+    assert [r["message"] for r in rows] == sent    # both runs, in order
+    assert sent.count("HEARTBEAT") >= 2 and sent.count("OPTICAL_FLOW_RAD") >= 2 * 10

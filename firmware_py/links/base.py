@@ -6,7 +6,8 @@ Timing model
 ------------
 * ``submit()`` adds a frame to the integrator; when the pending interval (capture-timestamp
   time, not wall clock) reaches the message period, the protocol encodes it and it is queued
-  and written at once — messages go out as soon as the flow is known, at a steady rate.
+  and written at once — messages go out as soon as the flow is known, at a steady rate
+  (a frame's extra values are queued after its flow message).
 * ``service(now_host_us)`` does everything that depends on host time: reopening the port,
   reading the autopilot's side, heartbeats, and the blind keep-alive.
 * **Blind camera.** ArduPilot marks the flow sensor unhealthy when the last message is
@@ -14,17 +15,30 @@ Timing model
   quality-0 samples from the estimator but keep the sensor "present". So while no frames
   arrive the link keeps sending the flow message with zero flow and quality 0 at
   :data:`BLIND_RATE_HZ` (integration time = real host time since the previous message,
-  below 0.5 s), next to the 1 Hz heartbeat. The daemon may submit its own quality-0 samples
-  instead; then these keep-alives never trigger.
+  below 0.5 s), next to the 1 Hz heartbeat. "No frames" is judged on the host time since
+  the last ``submit()`` — a slow engine makes every frame's capture time old before it is
+  submitted — and a slow but steady stream (frames further apart than ``blind_after_s``,
+  up to the longest interval a report may span) gets :data:`SLOW_STREAM_WAIT` times its
+  typical interval before the keep-alive starts (no later than :data:`TIMEOUT_MARGIN_S`
+  before the autopilot's timeout unless the stream itself is that slow): it is slow, not
+  blind.
+* **Where the autopilot's interval starts.** INAV and ArduPilot's MSP driver divide a
+  message's counts by the time since the *previous message*, and PX4 integrates its own gyro
+  from the previous message on; so any message starts the autopilot's next interval.
+  Hence (1) when integration (re)starts — the first frame, a frame after a gap or a clock
+  reset — the link sends a quality-0 report at once, so the next report's counts and the
+  autopilot's interval start at the same frame; (2) a keep-alive never discards the pending
+  interval, but the report that closes an interval begun before a keep-alive goes out with
+  quality 0 (its counts span more than the autopilot's interval).
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
-from ..angular import VALID_ROTATIONS_DEG, FlowIntegrator, FlowInterval
+from ..angular import VALID_ROTATIONS_DEG, FlowIntegrator, FlowInterval, RecentIntervals
 from .message_log import MessageLog
 from .serial_port import OutgoingMessage, SerialTransport, host_now_us
 
@@ -38,6 +52,11 @@ PROTOCOLS = ("mavlink", "msp")
 
 #: Quality-0 keep-alive messages per second while no frames arrive.
 BLIND_RATE_HZ = 10.0
+#: A slow but steady stream is blind only after this many of its typical frame intervals.
+SLOW_STREAM_WAIT = 1.25
+#: Keep-alives start at least this long before the autopilot's timeout when they can, s
+#: (serial latency, the daemon's 10 ms loop).
+TIMEOUT_MARGIN_S = 0.05
 #: Fraction of the line's capacity the link may use (the rest absorbs jitter and bursts).
 BUSY_FRACTION = 0.6
 
@@ -107,7 +126,8 @@ class LinkConfig:
     message_log : str or None
         ``*.csv`` or ``*.jsonl`` path of a log of every message written, or None.
     extra_values : bool
-        Reserved for NAMED_VALUE_FLOAT diagnostics (issue 6); accepted, not used yet.
+        Also send the samples' extra values (MAVLink: NAMED_VALUE_FLOAT at 5 Hz, queued after
+        the frame's flow message; MSP: not sent).
     msp_counts_per_degree : float
         MSP motion counts per degree of angular flow; must equal INAV's ``opflow_scale``
         (default 10.5) so INAV's rates come out in the right scale.
@@ -197,8 +217,12 @@ class FlowLink:
     """
 
     protocol = "?"
-    #: Start the blind keep-alive after this long without a submitted frame, s.
+    #: Start the blind keep-alive after this long without a submitted frame, s (the daemon
+    #: may lower it with ``[daemon] blind_after_s``, never raise it).
     blind_after_s = 0.3
+    #: The autopilot declares the sensor lost after this long without a message, s
+    #: (ArduPilot: 0.5 s).
+    autopilot_timeout_s = 0.5
 
     def __init__(self, config: LinkConfig):
         self.config = config
@@ -217,13 +241,14 @@ class FlowLink:
                 self.message_log = MessageLog(config.message_log)
             except OSError as exc:
                 log.warning("message log %s cannot be created: %s; not logging", config.message_log, exc)
-        self._last_submit_host_us: int | None = None
+        self._last_submit_host_us: int | None = None    # host time of the last submit()
+        self._submit_intervals = RecentIntervals()      # host µs between submits
+        self._slow_stream_logged = False
         self._last_flow_host_us: int | None = None
         self._last_report_end_us: int | None = None
+        self._keepalive_in_interval = False  # a keep-alive went out since the pending interval began
         self._last_restarts = 0
         self._internal_error_logged = False
-        if config.extra_values:
-            log.debug("extra_values requested: not implemented by this version of the link")
         if config.port is None:
             log.warning("no serial port configured: %s messages are counted but not sent", self.protocol)
         self.transport = SerialTransport(port=config.port, baud=config.baud, stats=self.stats,
@@ -271,13 +296,15 @@ class FlowLink:
         return rate
 
     # -- public interface ------------------------------------------------------------
-    def submit(self, sample: FlowSample) -> None:
+    def submit(self, sample: FlowSample, now_host_us: int | None = None) -> None:
         """Add one processed frame; sends a report when the interval is complete.
 
-        Never blocks, never raises.
+        ``now_host_us`` is the host monotonic time of the call, µs (default: now): the blind
+        keep-alive counts from the last submit, not from the frame's capture. Never blocks,
+        never raises.
         """
         try:
-            self._submit(sample)
+            self._submit(sample, host_now_us() if now_host_us is None else int(now_host_us))
         except Exception:  # noqa: BLE001 - the frame loop must survive any link bug
             self._internal_error("submit")
 
@@ -297,6 +324,14 @@ class FlowLink:
             self.transport.pump(now)
         except Exception:  # noqa: BLE001
             self._internal_error("service")
+
+    def set_focal_length_px(self, focal_length_px: float) -> None:
+        """Convert pixels to angles with this focal length (px) from the next report on:
+        the daemon calls it when a camera opened after start-up delivers another image
+        (aspect ratio, hence crop) than the one the link was made for."""
+        if not (focal_length_px > 0 and math.isfinite(focal_length_px)):
+            raise ValueError(f"focal_length_px must be positive, got {focal_length_px}")
+        self.integrator.focal_length_px = float(focal_length_px)
 
     def latencies_us(self) -> list[int]:
         """Capture-to-write latencies (µs) of flow messages written since the previous call.
@@ -334,46 +369,109 @@ class FlowLink:
     def _send_extras(self, sample: FlowSample) -> None:
         """Protocol hook for ``sample.extras`` (only MAVLink has a field for them)."""
 
-    def _submit(self, sample: FlowSample) -> None:
+    def _submit(self, sample: FlowSample, now: int) -> None:
         self.stats["frames"] += 1
-        if self.config.extra_values and sample.extras:
-            self._send_extras(sample)
-        self._last_submit_host_us = int(sample.capture_host_us)
+        self._note_submit(now)
         integ = self.integrator
-        integ.add_frame(timestamp_us=sample.timestamp_us, flow_x_px=sample.flow_x,
-                        flow_y_px=sample.flow_y, quality=sample.quality)
+        started = not integ.add_frame(timestamp_us=sample.timestamp_us, flow_x_px=sample.flow_x,
+                                      flow_y_px=sample.flow_y, quality=sample.quality)
         if integ.restart_count != self._last_restarts:
             self._last_restarts = integ.restart_count
             self.stats["integration_restarts"] = integ.restart_count
             self._reset_carry()
-        # Emit on frame boundaries: a quarter-frame tolerance keeps e.g. 50 Hz at 100 fps
-        # from slipping to every third frame on jitter.
-        tolerance = 0.25 * (integ.nominal_interval_us or 0.0)
-        if integ.elapsed_us > 0 and integ.elapsed_us >= self.period_us - tolerance:
-            interval = integ.take()
-            self._emit(interval, capture_host_us=int(sample.capture_host_us))
+        if started:
+            # The autopilot's next interval must begin at this frame as well.
+            self._keepalive_in_interval = False
+            marker = self._quality0_interval(end_us=int(sample.timestamp_us),
+                                             span_us=self._quality0_span_us(now))
+            self._emit(marker, capture_host_us=int(sample.capture_host_us), now=now)
+        else:
+            # Emit on frame boundaries: a quarter-frame tolerance keeps e.g. 50 Hz at 100 fps
+            # from slipping to every third frame on jitter.
+            tolerance = 0.25 * (integ.nominal_interval_us or 0.0)
+            if integ.elapsed_us > 0 and integ.elapsed_us >= self.period_us - tolerance:
+                interval = integ.take()
+                if self._keepalive_in_interval:
+                    # The autopilot's interval began at the keep-alive, these counts earlier.
+                    interval = replace(interval, quality=0)
+                    self._keepalive_in_interval = False
+                self._emit(interval, capture_host_us=int(sample.capture_host_us), now=now)
+        # After the flow message: the extras must not delay it on the wire.
+        if self.config.extra_values and sample.extras:
+            self._send_extras(sample)
         self.transport.pump()
 
+    def _note_submit(self, now: int) -> None:
+        """Track the host interval between submitted frames; warn once when it is longer
+        than the autopilot tolerates between messages."""
+        if self._last_submit_host_us is not None:
+            self._submit_intervals.add(now - self._last_submit_host_us)
+        self._last_submit_host_us = now
+        if self._slow_stream_logged or len(self._submit_intervals) < 5:
+            return  # judged on a median of 5 or more: one stall is not a slow stream
+        typical = self._submit_intervals.typical
+        max_interval_us = self.integrator.max_interval_us
+        if typical <= min(self.autopilot_timeout_s * 1e6, max_interval_us):
+            return
+        self._slow_stream_logged = True
+        if typical > max_interval_us:
+            effect = (f"more than a report may span ({max_interval_us / 1e6:.2f} s): only quality-0 "
+                      "messages can be sent")
+        else:
+            effect = (f"more than the autopilot's {self.autopilot_timeout_s:.2f} s timeout: it will see "
+                      "the flow sensor time out between reports")
+        log.warning("%s on %s: processed frames arrive every %.2f s, %s; use a faster engine "
+                    "(OpenCL, smaller frames) or camera", self.protocol, self.config.port, typical / 1e6,
+                    effect)
+
+    def _keepalive_after_us(self) -> float:
+        """Host time without a submitted frame after which the link is blind, µs.
+
+        ``blind_after_s``; for a slow but steady stream that can be reported,
+        :data:`SLOW_STREAM_WAIT` of its typical interval (a keep-alive before its next frame
+        would cost that frame's report), but no later than :data:`TIMEOUT_MARGIN_S` before the
+        autopilot's timeout — unless the stream itself is about that slow: then its reports
+        come first (and :meth:`_note_submit` warns when it exceeds the timeout).
+        """
+        after = self.blind_after_s * 1e6
+        typical = self._submit_intervals.typical
+        if typical is None or typical > self.integrator.max_interval_us:
+            return after  # fast, not known yet, or too slow to report anyway
+        wait = min(SLOW_STREAM_WAIT * typical, (self.autopilot_timeout_s - TIMEOUT_MARGIN_S) * 1e6)
+        if wait <= typical:
+            wait = SLOW_STREAM_WAIT * typical
+        return max(after, wait)
+
+    def _quality0_span_us(self, now: int) -> int:
+        """Span of a quality-0 report: the host time since the previous flow message (what
+        PX4 integrates its own gyro over), below ArduPilot's 0.5 s, µs."""
+        if self._last_flow_host_us is None:
+            return int(1e6 / BLIND_RATE_HZ)
+        return max(0, min(now - self._last_flow_host_us, self.integrator.max_blind_interval_us))
+
+    @staticmethod
+    def _quality0_interval(*, end_us: int, span_us: int) -> FlowInterval:
+        """Zero flow, quality 0, ending at ``end_us`` (capture clock)."""
+        return FlowInterval(start_us=end_us - span_us, end_us=end_us, integrated_x=0.0, integrated_y=0.0,
+                            sum_u_px=0.0, sum_v_px=0.0, quality=0, frame_count=0)
+
     def _blind_keepalive(self, now: int) -> None:
-        if self._last_submit_host_us is not None and now - self._last_submit_host_us < self.blind_after_s * 1e6:
+        since_submit = None if self._last_submit_host_us is None else now - self._last_submit_host_us
+        if since_submit is not None and since_submit < self._keepalive_after_us():
             return
         if self._last_flow_host_us is not None and now - self._last_flow_host_us < 1e6 / BLIND_RATE_HZ:
             return
-        if self._last_flow_host_us is None:
-            span = int(1e6 / BLIND_RATE_HZ)
-        else:
-            span = min(now - self._last_flow_host_us, self.integrator.max_blind_interval_us)
+        span = self._quality0_span_us(now)
         if self._last_report_end_us is None:
             end = now  # nothing reported yet: the host clock is all there is
         else:
             # Continue the capture clock from the previous report by the host time since.
             end = self._last_report_end_us + span
-        interval = FlowInterval(start_us=end - span, end_us=end, integrated_x=0.0, integrated_y=0.0,
-                                sum_u_px=0.0, sum_v_px=0.0, quality=0, frame_count=0)
-        self.integrator.restart(None)  # frames resuming start a fresh interval
-        self._reset_carry()
+        if self.integrator.last_timestamp_us is not None:
+            # The pending interval stays (a late frame may still close it), but not as a good report.
+            self._keepalive_in_interval = True
         self.stats["blind_reports"] += 1
-        self._emit(interval, capture_host_us=None, now=now)
+        self._emit(self._quality0_interval(end_us=end, span_us=span), capture_host_us=None, now=now)
 
     def _emit(self, interval: FlowInterval, *, capture_host_us: int | None, now: int | None = None) -> None:
         now = host_now_us() if now is None else now

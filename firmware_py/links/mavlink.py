@@ -172,7 +172,8 @@ class MavlinkLink(FlowLink):
         return out
 
     def _send_extras(self, sample) -> None:
-        """NAMED_VALUE_FLOAT per extra value at EXTRAS_RATE_HZ (capture clock), off by default.
+        """NAMED_VALUE_FLOAT per extra value at EXTRAS_RATE_HZ (capture clock), off by default;
+        called after the frame's flow message was queued, so they never delay it.
 
         No standard MAVLink field carries expansion or time to contact; NAMED_VALUE_FLOAT
         shows up in MAVProxy, QGroundControl's inspector and the autopilot's log (ArduPilot

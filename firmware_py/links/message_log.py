@@ -5,6 +5,10 @@ capture to write (µs, empty for heartbeats), and the message's fields. ``.csv``
 header (the union of all field names the links use; empty cells where a field does not
 apply), anything else (``.jsonl``, ``.json``, ``.ndjson``) gets one JSON object per line.
 
+The file is appended to: a restarted daemon (systemd after a watchdog kill or a hung camera)
+continues the log of the flight instead of erasing it. The CSV header is written only into
+a new or empty file; host times start again from the new process's monotonic clock.
+
 Logging never stops the link: a write error disables the log with one warning.
 """
 
@@ -46,13 +50,23 @@ class MessageLog:
         parent = os.path.dirname(self.path)
         if parent:
             os.makedirs(parent, exist_ok=True)
-        self._file = open(self.path, "w", newline="" if self.is_csv else None, encoding="utf-8")
+        self._file = open(self.path, "a", newline="" if self.is_csv else None, encoding="utf-8")
         self._writer = None
+        if self._file.tell() > 0:
+            self._end_torn_line()
         if self.is_csv:
             self._writer = csv.DictWriter(self._file, fieldnames=LOG_COLUMNS, extrasaction="ignore")
-            self._writer.writeheader()
+            if self._file.tell() == 0:
+                self._writer.writeheader()
         self._last_flush_us = None
         self.rows = 0
+
+    def _end_torn_line(self) -> None:
+        """Terminate a last row cut off by a power loss, so the next row starts on its own line."""
+        with open(self.path, "rb") as f:
+            f.seek(-1, os.SEEK_END)
+            if f.read(1) != b"\n":
+                self._file.write("\n")
 
     def write(self, *, host_us: int, message: str, size: int, latency_us: int | None, fields: dict) -> None:
         """Record one message (never raises)."""

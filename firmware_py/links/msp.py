@@ -87,6 +87,7 @@ class MspLink(FlowLink):
 
     protocol = "msp"
     #: INAV declares the sensor unhealthy after 0.2 s without a message.
+    autopilot_timeout_s = 0.2
     blind_after_s = 0.15
 
     def __init__(self, config: LinkConfig):

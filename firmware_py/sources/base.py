@@ -1,23 +1,34 @@
 """The one interface every frame source implements.
 
-A source delivers gray frames at the *processing* resolution (it resizes or bins what the
-camera or file gives), each with a capture timestamp in the source's own clock and the host
-monotonic time at which it was captured or received (for latency measurement).
+A source delivers gray frames at the *processing* resolution (it crops to the processing
+aspect ratio and resizes or bins what the camera or file gives, one scale for both axes),
+each with a capture timestamp in the source's own clock and the host monotonic time at which
+it was captured or received (for latency measurement).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 
 import cv2
 import numpy as np
 
-__all__ = ["Frame", "FrameSource", "SourceError", "Pacer", "fit_to", "host_us"]
+__all__ = ["Frame", "FrameSource", "SourceError", "FrameError", "Pacer", "fit_to", "centre_crop",
+           "host_us"]
 
 
 class SourceError(RuntimeError):
     """A source cannot be opened or has failed; the message names the device or file."""
+
+
+class FrameError(SourceError):
+    """One frame cannot be converted (a corrupt or short camera buffer); the device is fine.
+
+    Sources skip such a frame and count it (:attr:`FrameSource.bad_frames`) instead of
+    treating it as a lost device; only a run of them ends in :class:`SourceError`.
+    """
 
 
 def host_us() -> int:
@@ -72,6 +83,13 @@ class FrameSource:
         none; ``None`` for cameras, whose lens the configuration must describe.
     waited_us : int
         Time the last :meth:`read` slept for ``--realtime`` pacing, µs.
+    bad_frames : int
+        Frames skipped since construction because they could not be converted (a corrupt
+        camera buffer); they never reach the caller.
+    crop_fraction : (float, float)
+        Fractions of the delivered image's width and height that the processed frames show
+        (1.0, 1.0 unless the camera or file has another aspect ratio than the processing
+        size and was centre-cropped to it); known after :meth:`open`.
     """
 
     uri: str = ""
@@ -82,6 +100,20 @@ class FrameSource:
     default_focal_length_px: float | None = None
     #: Time the last :meth:`read` spent pacing (``--realtime``), µs: not capture work.
     waited_us: int = 0
+    bad_frames: int = 0
+    crop_fraction: tuple[float, float] = (1.0, 1.0)
+
+    def focal_length_for_hfov(self, horizontal_fov_deg: float) -> float:
+        """Focal length at the processing resolution, px, of a lens whose horizontal field of
+        view over the image the camera *delivers* is ``horizontal_fov_deg`` (degrees).
+
+        ``width / 2 / tan(fov / 2)`` when the whole delivered width is used; when the
+        delivered image was wider than the processing aspect ratio and its sides were
+        cropped, the processed frames show only ``crop_fraction[0]`` of that width, so the
+        focal length in processed px is larger by ``1 / crop_fraction[0]``.
+        """
+        half = math.radians(float(horizontal_fov_deg)) / 2.0
+        return self.width / 2.0 / math.tan(half) / self.crop_fraction[0]
 
     def open(self) -> None:
         """Open the device or file; raise :class:`SourceError` naming it on failure."""
@@ -108,13 +140,37 @@ class FrameSource:
         return f"{type(self).__name__}({self.uri!r}, {self.width}x{self.height} @ {self.fps:g} fps)"
 
 
+def centre_crop(in_width: int, in_height: int, width: int, height: int) -> tuple[int, int, int, int]:
+    """The largest centred region of an ``in_width × in_height`` image with the aspect ratio
+    ``width : height``, as ``(x0, y0, crop_width, crop_height)`` in px of the input.
+
+    The whole image when the aspect ratios agree (to the pixel): a wider input loses columns
+    on both sides, a taller one rows at the top and bottom. Resizing the crop to
+    ``width × height`` then applies one scale to both axes, which the link's single focal
+    length assumes.
+    """
+    if in_width * height > in_height * width:      # wider than asked: cut the sides
+        crop_w, crop_h = min(in_width, max(1, round(in_height * width / height))), in_height
+    else:                                          # taller (or equal): cut top and bottom
+        crop_w, crop_h = in_width, min(in_height, max(1, round(in_width * height / width)))
+    return (in_width - crop_w) // 2, (in_height - crop_h) // 2, crop_w, crop_h
+
+
 def fit_to(image: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Return ``image`` at (height, width), area-averaged (binning for integer factors).
+    """Return ``image`` at (height, width): centre-cropped to the aspect ratio
+    ``width : height`` (:func:`centre_crop`), then area-averaged (binning for integer
+    factors), so x and y are scaled alike.
 
     The input is returned unchanged, without a copy, when it already has that size.
     """
-    if image.shape[0] == height and image.shape[1] == width:
+    in_h, in_w = image.shape[:2]
+    if in_h == height and in_w == width:
         return image if image.flags.c_contiguous else np.ascontiguousarray(image)
+    x0, y0, crop_w, crop_h = centre_crop(in_w, in_h, width, height)
+    if (crop_w, crop_h) != (in_w, in_h):
+        image = image[y0:y0 + crop_h, x0:x0 + crop_w]   # a view; resize reads it in place
+        if (crop_w, crop_h) == (width, height):
+            return np.ascontiguousarray(image)
     # INTER_AREA is exact pixel binning for integer factors and the right low-pass otherwise.
     return cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
 

@@ -4,14 +4,17 @@ URI options (comma separated ``key=value`` after ``synthetic:``; all optional):
 
 ``texture``  ground photograph: a name from :data:`emdflow.synthetic.TEXTURES` or an image
              file path (default ``gravel``);
-``u``, ``v`` constant image flow of the ground, px/frame, x right / y down; giving either
-             selects a straight flight;
-``circle``   speed of a circular flight, px/frame (default 2.0; used when neither ``u`` nor
-             ``v`` is given): the flow turns once per ``period``;
-``period``   duration of one circle, s (default 4.0);
-``noise``    sensor noise sigma, gray levels (default 2.0);
-``seed``     noise seed (default 0);
-``supersample`` rendering oversampling per axis (default 2).
+``u``, ``v`` constant image flow of the ground, px/frame, x right / y down, each within
+             ±100; giving either selects a straight flight;
+``circle``   speed of a circular flight, px/frame, 0..100 (default 2.0; used when neither
+             ``u`` nor ``v`` is given): the flow turns once per ``period``;
+``period``   duration of one circle, s, above 0 and at most 3600 (default 4.0);
+``noise``    sensor noise sigma, gray levels, 0..100 (default 2.0);
+``seed``     noise seed, integer 0..2**31-1 (default 0);
+``supersample`` rendering oversampling per axis, integer 1..16 (default 2).
+
+Numbers must be finite and within these limits (``inf``, ``nan`` or ``period=1e7`` are
+errors naming the option, which stop the daemon at start-up with exit code 2).
 
 The frame rate and size come from the configuration (default 320×240 at 100 frames/s), the
 timestamps are ``index / fps``, and the default focal length is the frame width in px.
@@ -41,6 +44,19 @@ SYNTHETIC_DEFAULTS = {
     "supersample": 2,
 }
 _MAX_CACHED_FRAMES = 1000  # 320×240 → 77 MB at most; longer circles are rendered live
+#: Accepted range of each numeric option: (minimum, maximum, minimum is exclusive). Beyond
+#: these a flight is meaningless (flow far beyond what the engine resolves, noise beyond the
+#: gray range), or a typo that must not become an hour-long loop or an unbounded render cost
+#: (supersampling costs its square); inf and nan are refused.
+OPTION_LIMITS = {
+    "u": (-100, 100, False),
+    "v": (-100, 100, False),
+    "circle": (0, 100, False),
+    "period": (0, 3600, True),
+    "noise": (0, 100, False),
+    "seed": (0, 2**31 - 1, False),
+    "supersample": (1, 16, False),
+}
 
 
 def parse_options(text: str) -> dict:
@@ -59,19 +75,23 @@ def parse_options(text: str) -> dict:
                 f"{', '.join(SYNTHETIC_DEFAULTS)}"
             )
         value = value.strip()
+        if key == "texture":
+            options[key] = value
+            continue
+        integer = key in ("seed", "supersample")
         try:
-            if key == "texture":
-                options[key] = value
-            elif key in ("seed", "supersample"):
-                options[key] = int(value)
-            else:
-                options[key] = float(value)
+            number = int(value) if integer else float(value)
         except ValueError:
-            raise ValueError(f"synthetic option {key}={value!r}: not a number") from None
-    if options["supersample"] < 1:
-        raise ValueError(f"synthetic option supersample={options['supersample']}: must be >= 1")
-    if options["period"] <= 0:
-        raise ValueError(f"synthetic option period={options['period']}: must be > 0")
+            kind = "an integer" if integer else "a number"
+            raise ValueError(f"synthetic option {key}={value!r}: not {kind}") from None
+        low, high, open_low = OPTION_LIMITS[key]
+        if not math.isfinite(number):
+            raise ValueError(f"synthetic option {key}={value}: must be a finite number in "
+                             f"{'(' if open_low else '['}{low}, {high}]")
+        if number < low or (open_low and number == low) or number > high:
+            raise ValueError(f"synthetic option {key}={value}: must be {'>' if open_low else '>='} {low} "
+                             f"and <= {high}")
+        options[key] = number
     return options
 
 
@@ -116,7 +136,8 @@ class SyntheticSource(FrameSource):
         else:
             self.loop_frames = max(3, int(round(o["period"] * self.fps)))
             self._flight_kwargs = dict(texture=o["texture"], flow=(0.0, 0.0), **common)
-            self._positions = self._circle_positions()
+            th, tw = load_texture(o["texture"]).shape
+            self._centre = (tw / 2.0, th / 2.0)
             cacheable = self.loop_frames <= _MAX_CACHED_FRAMES
             self._cache: list[np.ndarray | None] | None = [None] * self.loop_frames if cacheable else None
         self._pacer = Pacer(self.fps) if realtime else None
@@ -131,16 +152,19 @@ class SyntheticSource(FrameSource):
         phase = 2.0 * math.pi * (index % self.loop_frames) / self.loop_frames
         return speed * math.cos(phase), speed * math.sin(phase)
 
-    def _circle_positions(self) -> np.ndarray:
-        # Ground position under the image centre for each frame of one loop: the camera
-        # moves against the image flow. The flows of one period sum to zero, so it closes.
-        from emdflow.synthetic import load_texture
+    def _circle_position(self, k: int) -> tuple[float, float]:
+        """Ground position (texture px) under the image centre at frame ``k`` of the loop.
 
-        th, tw = load_texture(self.options["texture"]).shape
-        flows = np.array([self.truth(i) for i in range(self.loop_frames)])
-        steps = np.cumsum(flows, axis=0)
-        steps -= steps[-1]  # frame 0 (= frame loop_frames) sits at the start
-        return np.array([tw / 2.0, th / 2.0]) - steps
+        The camera moves against the image flow: the position is the start minus the flows
+        of frames 0..k, summed in closed form (no per-frame table: a long period costs
+        nothing). The flows of one period sum to zero, so the loop closes.
+        """
+        n, speed = self.loop_frames, self.options["circle"]
+        half = math.pi / n  # half the turn per frame
+        # sum_{j=0..k} (cos, sin)(2 pi j / n) = sin((k+1) half) / sin(half) * (cos, sin)(k half)
+        amplitude = speed * math.sin((k + 1) * half) / math.sin(half)
+        return (self._centre[0] - amplitude * math.cos(k * half),
+                self._centre[1] - amplitude * math.sin(k * half))
 
     def _render(self, index: int) -> np.ndarray:
         from emdflow.synthetic import CameraFlight
@@ -150,7 +174,7 @@ class SyntheticSource(FrameSource):
         k = index % self.loop_frames
         if self._cache is not None and self._cache[k] is not None:
             return self._cache[k]
-        cx, cy = self._positions[k]
+        cx, cy = self._circle_position(k)
         flight = CameraFlight(start=(float(cx), float(cy)), seed=self.options["seed"] + k,
                               **self._flight_kwargs)
         image = flight.render(0)

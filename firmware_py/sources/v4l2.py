@@ -5,17 +5,25 @@ waits behind older ones; the raw buffer is taken without OpenCV's RGB conversion
 into gray in one step (GREY: a view, YUYV: the luma plane, MJPG: a luma-only JPEG decode);
 the capture timestamp is the driver's buffer timestamp, which V4L2 takes from
 ``CLOCK_MONOTONIC`` — the host clock the latency is measured in.
+
+A buffer that cannot be converted (a truncated JPEG or a short buffer: what USB bandwidth
+glitches produce) is a bad *frame*, not a lost camera: it is skipped, counted in
+:attr:`~firmware_py.sources.base.FrameSource.bad_frames` and logged at most once per 5 s;
+only a run of them, or a failed driver read, raises :class:`SourceError` (and the daemon
+reopens the camera). A camera that delivers another size than asked is centre-cropped to
+the asked aspect ratio before resizing, so both axes get the same scale.
 """
 
 from __future__ import annotations
 
 import logging
+import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from .base import Frame, FrameSource, SourceError, fit_to, host_us
+from .base import Frame, FrameError, FrameSource, SourceError, centre_crop, fit_to, host_us
 
 __all__ = ["V4L2Source", "raw_to_gray", "PIXEL_FORMATS"]
 
@@ -27,6 +35,11 @@ _EXPOSURE_UNIT_US = 100.0
 _AUTO_EXPOSURE_MANUAL, _AUTO_EXPOSURE_AUTO = 1, 3
 # A buffer timestamp further than this from "now" is not CLOCK_MONOTONIC (some old drivers).
 _PLAUSIBLE_TIMESTAMP_US = 2_000_000
+# This many unconvertible buffers in a row mean the stream itself is broken (a wedged
+# decoder, a format mix-up): the camera is reopened. 25 frames: 0.25 s at 100 frames/s,
+# 0.8 s at 30 — isolated corrupt frames, as USB glitches produce them, are skipped.
+BAD_FRAMES_BEFORE_REOPEN = 25
+_BAD_FRAME_LOG_S = 5.0  # at most one "frame skipped" line per this many seconds
 
 
 def raw_to_gray(raw: np.ndarray, pixel_format: str, width: int, height: int) -> np.ndarray:
@@ -46,22 +59,29 @@ def raw_to_gray(raw: np.ndarray, pixel_format: str, width: int, height: int) -> 
     -------
     numpy.ndarray
         uint8 (height, width); a view of ``raw`` where the layout allows it.
+
+    Raises
+    ------
+    FrameError
+        This buffer cannot be converted (an undecodable JPEG, a short GREY/YUYV buffer).
+    SourceError
+        Unknown pixel format.
     """
     if raw.ndim == 3 and raw.shape[2] == 3:
         return cv2.cvtColor(raw, cv2.COLOR_BGR2GRAY)
     if pixel_format == "MJPG":
         gray = cv2.imdecode(raw.reshape(-1), cv2.IMREAD_GRAYSCALE)
         if gray is None:
-            raise SourceError(f"MJPG frame of {raw.size} bytes: not a decodable JPEG")
+            raise FrameError(f"MJPG frame of {raw.size} bytes: not a decodable JPEG")
         return gray
     flat = raw.reshape(-1)
     if pixel_format == "GREY":
         if flat.size < width * height:
-            raise SourceError(f"GREY frame of {flat.size} bytes, expected {width * height}")
+            raise FrameError(f"GREY frame of {flat.size} bytes, expected {width * height}")
         return flat[: width * height].reshape(height, width)
     if pixel_format == "YUYV":
         if flat.size < width * height * 2:
-            raise SourceError(f"YUYV frame of {flat.size} bytes, expected {width * height * 2}")
+            raise FrameError(f"YUYV frame of {flat.size} bytes, expected {width * height * 2}")
         # Y0 U Y1 V: one cvtColor pass extracts the luma into a contiguous image.
         packed = flat[: width * height * 2].reshape(height, width, 2)
         return cv2.cvtColor(packed, cv2.COLOR_YUV2GRAY_YUYV)
@@ -86,7 +106,8 @@ class V4L2Source(FrameSource):
         ``/dev/videoN`` (or a udev symlink such as ``/dev/emdflow-camera``) or an index.
     width, height : int
         Processing resolution, px; the camera is asked for it and any other size it delivers
-        is area-resized to it.
+        is centre-cropped to this aspect ratio (WARNING in the log, :attr:`crop_fraction`)
+        and area-resized to it.
     fps : float
         Requested frame rate, frames/s.
     pixel_format : str
@@ -99,6 +120,9 @@ class V4L2Source(FrameSource):
         Manual gain in the driver's units; None leaves it alone.
     capture_factory : callable
         ``(device, api) -> VideoCapture``; the seam the tests replace (no camera here).
+    bad_frames_before_reopen : int
+        Unconvertible buffers in a row after which :meth:`read` gives up with
+        :class:`SourceError` (fewer are skipped and counted in :attr:`bad_frames`).
     """
 
     live = True
@@ -106,7 +130,7 @@ class V4L2Source(FrameSource):
     def __init__(self, device: str, *, width: int = 320, height: int = 240, fps: float = 100.0,
                  pixel_format: str = "GREY", buffer_count: int = 2,
                  exposure_us: float | None = None, gain: float | None = None,
-                 capture_factory=cv2.VideoCapture):
+                 capture_factory=cv2.VideoCapture, bad_frames_before_reopen: int = BAD_FRAMES_BEFORE_REOPEN):
         self.uri = f"v4l2:{device}"
         self.device = parse_device(device)
         self.width, self.height, self.fps = int(width), int(height), float(fps)
@@ -119,8 +143,13 @@ class V4L2Source(FrameSource):
         self.gain = gain
         self._factory = capture_factory
         self._cap = None
-        self._size = (self.width, self.height)
+        self._size = (self.width, self.height)   # what the driver delivers, px
+        self._size_reported = False
         self._index = 0
+        self.bad_frames_before_reopen = max(1, int(bad_frames_before_reopen))
+        self.bad_frames = 0
+        self._bad_in_row = 0
+        self._last_bad_log = -float("inf")
 
     def _set(self, prop: int, value: float, what: str) -> None:
         if not self._cap.set(prop, value):
@@ -150,30 +179,89 @@ class V4L2Source(FrameSource):
             self._set(cv2.CAP_PROP_EXPOSURE, self.exposure_us / _EXPOSURE_UNIT_US, "exposure (100 µs units)")
         if self.gain is not None:
             self._set(cv2.CAP_PROP_GAIN, self.gain, "gain")
-        got_w = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)) or self.width
-        got_h = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)) or self.height
+        got_w, got_h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        # A driver that does not report its size: assume the asked one until a frame tells.
+        self._size_reported = got_w > 0 and got_h > 0
+        got_w, got_h = (got_w, got_h) if self._size_reported else (self.width, self.height)
         got_fourcc = int(cap.get(cv2.CAP_PROP_FOURCC))
         got_fmt = got_fourcc.to_bytes(4, "little").decode("ascii", "replace") if got_fourcc > 0 else self.pixel_format
         if got_fmt in PIXEL_FORMATS and got_fmt != self.pixel_format:
             log.warning("%s: asked for %s, the driver delivers %s", self.uri, self.pixel_format, got_fmt)
             self.pixel_format = got_fmt
         self._size = (got_w, got_h)
-        if self._size != (self.width, self.height):
-            log.info("%s: camera delivers %dx%d, resized to %dx%d", self.uri, got_w, got_h, self.width, self.height)
+        self._note_geometry(got_w, got_h)
         self._index = 0
+        self._bad_in_row = 0
+
+    def _note_geometry(self, got_w: int, got_h: int) -> None:
+        """Record how a delivered ``got_w × got_h`` image becomes a processed frame, and say
+        so when it is not the asked size (a WARNING when the aspect ratio differs)."""
+        x0, y0, crop_w, crop_h = centre_crop(got_w, got_h, self.width, self.height)
+        self.crop_fraction = (crop_w / got_w, crop_h / got_h)
+        if (got_w, got_h) == (self.width, self.height):
+            return
+        scale = self.width / crop_w
+        if (crop_w, crop_h) == (got_w, got_h):
+            log.info("%s: camera delivers %dx%d, scaled by %.3f to %dx%d; [optics] focal_length_px refers to "
+                     "the %dx%d frames", self.uri, got_w, got_h, scale, self.width, self.height,
+                     self.width, self.height)
+            return
+        if crop_w < got_w:
+            cut = f"{x0} columns cut on the left, {got_w - crop_w - x0} on the right"
+        else:
+            cut = f"{y0} rows cut at the top, {got_h - crop_h - y0} at the bottom"
+        log.warning(
+            "%s: asked for %dx%d, the camera delivers %dx%d (another aspect ratio): its centre %dx%d is "
+            "used (%s) and scaled by %.3f on both axes to %dx%d. [optics] focal_length_px must be the "
+            "focal length of these %dx%d frames (%.3f x the focal length in px of the delivered %dx%d "
+            "image); they show %.1f %% of its width, so a horizontal field of view of the whole delivered "
+            "width means f = %d / 2 / tan(fov / 2) / %.4f",
+            self.uri, self.width, self.height, got_w, got_h, crop_w, crop_h, cut, scale, self.width,
+            self.height, self.width, self.height, scale, got_w, got_h, 100.0 * self.crop_fraction[0],
+            self.width, self.crop_fraction[0])
+
+    def _skip(self, index: int, exc: FrameError) -> None:
+        """Count and (rate-limited) log an unconvertible buffer; after
+        ``bad_frames_before_reopen`` in a row, give up with :class:`SourceError`."""
+        self.bad_frames += 1
+        self._bad_in_row += 1
+        if self._bad_in_row >= self.bad_frames_before_reopen:
+            raise SourceError(f"{self.uri}: {self._bad_in_row} frames in a row could not be converted "
+                              f"(last: {exc}); the camera stream is broken")
+        now = time.monotonic()
+        if now - self._last_bad_log >= _BAD_FRAME_LOG_S:
+            self._last_bad_log = now
+            log.warning("%s: frame %d: %s: frame skipped (%d bad frames so far; the camera is reopened "
+                        "after %d in a row)", self.uri, index, exc, self.bad_frames, self.bad_frames_before_reopen)
 
     def read(self) -> Frame | None:
+        """The next frame the camera delivers; an unconvertible buffer is skipped (see the
+        module docstring). Raises :class:`SourceError` when the driver read fails or
+        ``bad_frames_before_reopen`` buffers in a row could not be converted."""
         if self._cap is None:
             raise SourceError(f"{self.uri}: not open")
-        ok, raw = self._cap.read()
-        now = host_us()
-        if not ok or raw is None:
-            raise SourceError(f"{self.uri}: read failed (camera unplugged or stalled)")
-        stamp_us = int(self._cap.get(cv2.CAP_PROP_POS_MSEC) * 1000.0)
-        if not (0 < now - stamp_us < _PLAUSIBLE_TIMESTAMP_US):
-            stamp_us = now  # driver without monotonic buffer timestamps
-        gray = raw_to_gray(raw, self.pixel_format, *self._size)
-        frame = Frame(fit_to(gray, self.width, self.height), stamp_us, stamp_us, self._index)
-        self._index += 1
-        return frame
+        while True:
+            ok, raw = self._cap.read()
+            now = host_us()
+            if not ok or raw is None:
+                raise SourceError(f"{self.uri}: read failed (camera unplugged or stalled)")
+            index = self._index
+            self._index += 1  # a skipped buffer keeps its place: the gap shows in the indices
+            try:
+                gray = raw_to_gray(raw, self.pixel_format, *self._size)
+                got = (gray.shape[1], gray.shape[0])
+                if got != self._size:  # only a JPEG can decode to another size
+                    if self._size_reported:
+                        raise FrameError(f"{self.pixel_format} frame decodes to {got[0]}x{got[1]}, the "
+                                         f"driver announced {self._size[0]}x{self._size[1]}")
+                    self._size = got
+                    self._note_geometry(*got)
+            except FrameError as exc:
+                self._skip(index, exc)
+                continue
+            self._bad_in_row = 0
+            stamp_us = int(self._cap.get(cv2.CAP_PROP_POS_MSEC) * 1000.0)
+            if not (0 < now - stamp_us < _PLAUSIBLE_TIMESTAMP_US):
+                stamp_us = now  # driver without monotonic buffer timestamps
+            return Frame(fit_to(gray, self.width, self.height), stamp_us, stamp_us, index)
 

@@ -1,16 +1,38 @@
-"""``video:PATH`` — any file OpenCV reads, timestamps from the file's frame rate."""
+"""``video:PATH`` — any file OpenCV reads, timestamps from the file's frame rate.
+
+Files whose stream FFmpeg decodes to 8-bit gray (gray FFV1, as ``emdflow`` and the tests
+write it) are decoded straight to one channel, bit-exact and without a BGR round trip;
+every other stream (YUV: mp4v, H.264, MJPG, XVID, HuffYUV as OpenCV writes it; colour
+FFV1) goes through OpenCV's normal conversion and then to gray. Raw decoding of a YUV stream would hand out
+its limited-range luma plane with one OpenCV warning per frame on stderr — the journal
+under systemd, which then rate-limits the service and drops the daemon's own lines.
+"""
 
 from __future__ import annotations
 
+import logging
 import math
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from .base import Frame, FrameSource, Pacer, SourceError, fit_to, host_us
+from .base import Frame, FrameSource, Pacer, SourceError, centre_crop, fit_to, host_us
 
-__all__ = ["VideoFileSource", "probe_video"]
+__all__ = ["VideoFileSource", "probe_video", "is_gray_stream"]
+
+log = logging.getLogger("emdflowd.video")
+
+# Codec pixel formats (FFmpeg's raw tags, as CAP_PROP_CODEC_PIXEL_FORMAT reports them) that
+# OpenCV hands out as one 8-bit channel with CONVERT_RGB off: FFmpeg's GRAY8.
+_GRAY8_TAGS = {cv2.VideoWriter_fourcc(*tag) for tag in ("Y800", "GREY", "Y8  ")}
+
+
+def is_gray_stream(cap: cv2.VideoCapture) -> bool:
+    """True if an opened capture's video stream is 8-bit gray (decoded bit-exact to 2-D
+    with ``CAP_PROP_CONVERT_RGB`` off); False for YUV and colour streams."""
+    tag = int(cap.get(cv2.CAP_PROP_CODEC_PIXEL_FORMAT))
+    return tag in _GRAY8_TAGS
 
 
 def probe_video(path: str | Path) -> tuple[int, int, float]:
@@ -50,9 +72,10 @@ class VideoFileSource(FrameSource):
     Parameters
     ----------
     path : str
-        Any file OpenCV's FFmpeg backend reads (FFV1/MJPG ``.avi``/``.mkv`` are exact).
+        Any file OpenCV's FFmpeg backend reads (gray FFV1 ``.avi``/``.mkv`` are exact).
     width, height : int or None
-        Processing resolution, px; None keeps the file's own size.
+        Processing resolution, px; None keeps the file's own size. Another aspect ratio
+        than the file's is centre-cropped first (one scale for both axes).
     fps : float or None
         Frame rate to assume when the file declares none, frames/s.
     loop : bool
@@ -79,6 +102,9 @@ class VideoFileSource(FrameSource):
         self.realtime = bool(realtime)
         # Documented default: f = processed width (a 53° horizontal field of view).
         self.default_focal_length_px = float(self.width)
+        self._native_size = (native_w, native_h)
+        #: True while the stream is decoded raw (8-bit gray file), False when converted.
+        self.raw_gray = False
         self._cap: cv2.VideoCapture | None = None
         self._pacer = Pacer(self.fps) if realtime else None
         self._index = 0          # frames delivered since open (timestamps: index / fps)
@@ -89,12 +115,28 @@ class VideoFileSource(FrameSource):
         cap = cv2.VideoCapture(self.path)
         if not cap.isOpened():
             raise SourceError(f"video file {self.path!r}: OpenCV cannot open it")
-        # Gray files then decode straight to one channel (no BGR round trip).
-        cap.set(cv2.CAP_PROP_CONVERT_RGB, 0)
+        # Gray files decode straight to one channel (exact, no BGR round trip). Only those:
+        # raw YUV comes out as limited-range luma with an OpenCV warning for every frame.
+        self.raw_gray = is_gray_stream(cap)
+        if self.raw_gray:
+            cap.set(cv2.CAP_PROP_CONVERT_RGB, 0)
         self._cap = cap
+        self._note_geometry()
         self._index = 0
         if self._pacer:
             self._pacer.restart()
+
+    def _note_geometry(self) -> None:
+        """Record (and warn about) a centre crop when [source] width × height has another
+        aspect ratio than the file: x and y must be scaled alike for the link."""
+        native_w, native_h = self._native_size
+        _, _, crop_w, crop_h = centre_crop(native_w, native_h, self.width, self.height)
+        self.crop_fraction = (crop_w / native_w, crop_h / native_h)
+        if (crop_w, crop_h) != (native_w, native_h):
+            log.warning("video file %r is %dx%d, [source] asks for %dx%d (another aspect ratio): its centre "
+                        "%dx%d is used and scaled by %.3f on both axes; the focal length refers to the "
+                        "%dx%d frames", self.path, native_w, native_h, self.width, self.height, crop_w, crop_h,
+                        self.width / crop_w, self.width, self.height)
 
     def _grab(self) -> np.ndarray | None:
         ok, image = self._cap.read()

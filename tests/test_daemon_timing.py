@@ -1,0 +1,184 @@
+"""The daemon's timing with real sources and the real engine: when the link's keep-alive
+starts, slow engines and slow frame streams, the extra values' units. Messages are read on
+a real pty (pymavlink, the MSP v2 decoder) and from the link's message log (host times)."""
+
+from __future__ import annotations
+
+import csv
+import os
+import statistics
+import sys
+import time
+
+import pytest
+
+import emdflow
+from emdflow.synthetic import CameraFlight
+from firmware_py.config import Config
+from firmware_py.daemon import Daemon
+from firmware_py.sources import SourceError, make_source
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # shared helpers
+from daemon_util import Drain, PtyPair, engine_backend, flight_frames, parse_mavlink, write_video  # noqa: E402
+
+
+class _Unplugged:
+    """A real source whose camera is unplugged at read ``fail_at`` (then reopened)."""
+
+    def __init__(self, inner, fail_at):
+        self.inner, self.fail_at, self.reads = inner, fail_at, 0
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def read(self):
+        self.reads += 1
+        if self.reads == self.fail_at:
+            raise SourceError(f"{self.inner.uri}: read failed (USB camera unplugged)")
+        return self.inner.read()
+
+
+class _SlowerThanRequested:
+    """A real source that says ``fps`` (what was requested) but delivers the file's rate,
+    like a camera that cannot keep up with the requested frame rate."""
+
+    def __init__(self, inner, fps):
+        self.inner, self.fps = inner, fps
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+
+class _SlowEngine:
+    """The real estimator, taking ``extra_s`` longer per frame (numpy at 640x480, a slow board)."""
+
+    def __init__(self, inner, extra_s):
+        self.inner, self.extra_s = inner, extra_s
+
+    def update(self, image):
+        time.sleep(self.extra_s)
+        return self.inner.update(image)
+
+    def reset(self):
+        self.inner.reset()
+
+
+def _config(uri, *, autopilot="px4", model="paper", settings=None):
+    """Single-thread daemon on ``uri``; ``settings``: {(section, key): value}."""
+    config = Config()
+    config.set("source", "uri", uri)
+    config.set("engine", "backend", engine_backend())
+    config.set("engine", "model", model)
+    config.set("link", "autopilot", autopilot)
+    config.set("link", "baud", 921600)
+    config.set("daemon", "threading", "single")
+    for (section, key), value in (settings or {}).items():
+        config.set(section, key, value)
+    return config
+
+
+def _run(config, frames, **factories):
+    config.frames = frames
+    pty = PtyPair()
+    config.set("link", "port", pty.path)
+    drain = Drain(pty.master)
+    daemon = Daemon(config, **factories)
+    try:
+        code = daemon.run()
+    finally:
+        data = drain.stop()
+        pty.close()
+    assert code == 0
+    return daemon, data
+
+
+@pytest.mark.parametrize("autopilot, blind_after_s, link_blind_after_s, timeout_s", [
+    ("inav", 0.25, 0.15, 0.2),       # the daemon's default must not delay INAV's keep-alive
+    ("ardupilot", 1.0, 0.3, 0.5),    # nor a large setting ArduPilot's
+])
+def test_keepalive_starts_before_the_autopilot_times_out(tmp_path, autopilot, blind_after_s,
+                                                         link_blind_after_s, timeout_s):
+    made = []
+
+    def factory():
+        inner = make_source("synthetic:u=2,v=1", width=96, height=72, fps=100)
+        made.append(_Unplugged(inner, fail_at=20 if not made else None))
+        return made[-1]
+
+    log_path = tmp_path / "sent.csv"
+    config = _config("synthetic:u=2,v=1", autopilot=autopilot,
+                     settings={("source", "width"): 96, ("source", "height"): 72,
+                               ("link", "message_log"): str(log_path), ("daemon", "blind_after_s"): blind_after_s,
+                               ("daemon", "reopen_backoff_s"): 1.0})
+    daemon, _ = _run(config, 40, source_factory=factory)
+    with open(log_path, newline="") as f:
+        rows = [r for r in csv.DictReader(f) if r["message"] != "HEARTBEAT"]
+    times = [int(r["host_us"]) for r in rows]
+    gaps = [b - a for a, b in zip(times, times[1:])]
+    # the camera was away for ~1 s; the flow messages never paused for the autopilot's timeout
+    assert max(gaps) < timeout_s * 1e6, max(gaps)
+    assert daemon.link.blind_after_s == link_blind_after_s
+    assert daemon.stats.reopens == 1 and daemon.link.stats["blind_reports"] >= 5
+
+
+def test_slow_engine_gets_real_flow_through():
+    """0.3 s per frame (more than blind_after_s): the link judges blindness from the last
+    submit, so no keep-alive comes between frames and the reports keep their quality."""
+    config = _config("synthetic:u=2,v=1", settings={("source", "width"): 96, ("source", "height"): 72})
+
+    def slow(width, height):
+        real = emdflow.FlowEstimator(width, height, backend=config.engine.backend,
+                                     **config.engine.estimator_options())
+        return _SlowEngine(real, 0.3)
+
+    daemon, data = _run(config, 12, estimator_factory=slow)
+    rad = [m for m in parse_mavlink(data) if m.get_type() == "OPTICAL_FLOW_RAD"]
+    good = [m for m in rad if m.quality > 0]
+    assert len(good) >= 8, [m.quality for m in rad]      # the paper's model needs 3 frames
+    assert daemon.link.stats["blind_reports"] <= 1        # before the stream's pace is known
+    assert daemon.link.stats["integration_restarts"] == 0
+    for m in good:  # 100 fps synthetic flight, v = 1 px/frame, f = 96 px
+        assert m.integration_time_us == 10_000
+        assert m.integrated_y / m.integration_time_us * 1e6 == pytest.approx(100 / 96, rel=0.35)
+
+
+def test_frames_further_apart_than_the_reset_gap_are_not_each_a_gap(tmp_path):
+    """Processed frames 0.33 s apart (a 3 fps camera, or a large frame subset) with
+    reset_after_gap_s = 0.25: the estimator is not reset at every frame, and the link
+    reports their real flow over their real 0.33 s interval."""
+    clip = write_video(tmp_path / "slow.mkv", flight_frames(16, flow=(2.0, -1.5), width=96, height=72), fps=3.0)
+    config = _config(f"video:{clip}", settings={("engine", "reset_after_gap_s"): 0.25})
+    daemon, data = _run(config, 15)
+    assert daemon.stats.resets <= 1                       # the first interval: its pace unknown yet
+    rad = [m for m in parse_mavlink(data) if m.get_type() == "OPTICAL_FLOW_RAD"]
+    good = [m for m in rad if m.quality > 0]
+    assert len(good) >= 10, [m.quality for m in rad]
+    assert all(m.integration_time_us == pytest.approx(333_333, abs=1) for m in good)
+    seconds = sum(m.integration_time_us for m in good) / 1e6
+    # 2 px/frame right, 1.5 px/frame up, 3 frames/s, f = 96 px
+    assert sum(m.integrated_x for m in good) / seconds == pytest.approx(2.0 * 3 / 96, rel=0.35)
+    assert sum(m.integrated_y for m in good) / seconds == pytest.approx(-1.5 * 3 / 96, rel=0.35)
+    assert daemon.link.stats["integration_restarts"] == 0
+
+
+def test_extra_values_use_the_real_frame_interval(tmp_path):
+    """A camera asked for 100 fps that delivers 50: expansion (1/s) and time to contact (s)
+    come from the processed frames' capture timestamps, not the nominal rate."""
+    rate_per_frame = 0.01
+    flight = CameraFlight("gravel", width=160, height=120, flow=(0.0, 0.0), expansion_rate=rate_per_frame,
+                          noise_sigma=1.0, supersample=2, seed=0)
+    clip = write_video(tmp_path / "zoom.mkv", flight.render_many(60), fps=50.0)
+    config = _config(f"video:{clip}", autopilot="ardupilot", model="extended",
+                     settings={("link", "extra_values"): True})
+
+    def factory():
+        return _SlowerThanRequested(make_source(f"video:{clip}"), fps=100.0)
+
+    daemon, data = _run(config, 60, source_factory=factory)
+    assert daemon.fps == 100.0
+    named = [m for m in parse_mavlink(data) if m.get_type() == "NAMED_VALUE_FLOAT"]
+    # skip the extended model's 12 frames of history (extras go out at 5 Hz: every 10th frame)
+    expansion = [m.value for m in named if m.name == "expansion" and m.time_boot_ms >= 300]
+    ttc = [m.value for m in named if m.name == "ttc_s" and m.time_boot_ms >= 300]
+    assert len(expansion) >= 3
+    assert statistics.median(expansion) == pytest.approx(rate_per_frame * 50, rel=0.3)   # not × 100
+    assert statistics.median(ttc) == pytest.approx(1 / (rate_per_frame * 50), rel=0.3)

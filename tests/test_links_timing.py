@@ -1,0 +1,274 @@
+"""Link timing as each autopilot sees it: blindness judged on host time, slow but steady
+streams, where the autopilot's interval starts (integration restarts, keep-alives), and the
+order of the extra values.
+
+A simulated host clock drives ``submit(sample, now_host_us)`` and ``service(now)`` over a
+real pty. The autopilot's end reads after every call, so each message is timed by the host
+time at which it was written, and decodes it with pymavlink (ArduPilot, PX4) or an
+independent MSP v2 decoder (INAV), then derives the flow rate the way that autopilot does:
+ArduPilot from ``flow_rate_x/y``, PX4 from ``integrated_x/y / integration_time_us``, INAV from
+``motion × 1e6 / Δt_us / opflow_scale`` with Δt the time since the *previous message*.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import sys
+
+import pytest
+from pymavlink.dialects.v20 import common as mavlink2
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # shared helpers
+from daemon_util import parse_msp_v2  # noqa: E402
+from ptyutil import PtyPeer, host_us  # noqa: E402
+
+from firmware_py.links import FlowSample, LinkConfig, open_link  # noqa: E402
+
+F = 100.0            # focal length, px
+STEP_US = 10_000     # the daemon services the link every 10 ms
+OPFLOW_SCALE = 10.5  # INAV's default, the link's default msp_counts_per_degree
+TIMEOUT_US = {"ardupilot": 500_000, "px4": 500_000, "inav": 200_000}
+
+
+@pytest.fixture
+def peer(tmp_path):
+    p = PtyPeer(tmp_path / "ttyFC")
+    yield p
+    p.close()
+
+
+class FlightController:
+    """The autopilot's end of the pty: every flow message with its arrival time (µs), its
+    quality, whether the autopilot uses it, and the rate it derives (rad/s, MAVLink axes)."""
+
+    def __init__(self, peer: PtyPeer, autopilot: str):
+        self.peer, self.autopilot = peer, autopilot
+        self.parser = mavlink2.MAVLink(None)
+        self.messages: list[dict] = []
+        self.wire: list[tuple[int, object]] = []   # (arrival, message) of every MAVLink message
+        self._last_arrival: int | None = None
+
+    def poll(self, now_us: int) -> None:
+        data = self.peer.read()
+        if self.autopilot == "inav":
+            for function, payload in parse_msp_v2(data):
+                if function != 0x1F02:
+                    continue
+                quality = payload[0]
+                motion = (int.from_bytes(payload[1:5], "little", signed=True),
+                          int.from_bytes(payload[5:9], "little", signed=True))
+                dt = None if self._last_arrival is None else now_us - self._last_arrival
+                self._last_arrival = now_us
+                # INAV: deg/s = motion × 1e6 / Δt / opflow_scale; motion = -scale × degrees(angle)
+                rate = None if not dt else tuple(-math.radians(m * 1e6 / dt / OPFLOW_SCALE) for m in motion)
+                self.messages.append({"at": now_us, "quality": quality, "rate": rate,
+                                      "used": quality * 100 // 255 >= 35 and rate is not None})
+            return
+        for m in self.parser.parse_buffer(data) or []:
+            self.wire.append((now_us, m))
+            name = m.get_type()
+            if name == "OPTICAL_FLOW" and self.autopilot == "ardupilot":
+                self.messages.append({"at": now_us, "quality": m.quality, "used": m.quality > 0,
+                                      "rate": (m.flow_rate_x, m.flow_rate_y), "time_usec": m.time_usec})
+            elif name == "OPTICAL_FLOW_RAD" and self.autopilot == "px4":
+                dt = m.integration_time_us / 1e6
+                rate = (m.integrated_x / dt, m.integrated_y / dt) if dt > 0 else None
+                self.messages.append({"at": now_us, "quality": m.quality,
+                                      "used": m.quality > 0 and rate is not None, "rate": rate,
+                                      "integration_time_us": m.integration_time_us, "time_usec": m.time_usec})
+
+    def used(self) -> list[dict]:
+        return [m for m in self.messages if m["used"]]
+
+    def largest_gap_us(self, after_us: int) -> int:
+        times = [m["at"] for m in self.messages if m["at"] >= after_us]
+        return max(b - a for a, b in zip(times, times[1:]))
+
+
+def make_link(peer, autopilot, **kw):
+    return open_link(LinkConfig(port=peer.path, baud=921600, autopilot=autopilot, focal_length_px=F, **kw))
+
+
+def drive(link, fc, frames, *, start_us, end_us):
+    """Run the host clock from ``start_us`` to ``end_us`` in 10 ms steps; each frame
+    ``(submit_host_us, sample)`` is submitted at its host time (to the µs)."""
+    pending = sorted(frames, key=lambda item: item[0])
+    t = start_us
+    while t <= end_us:
+        while pending and pending[0][0] <= t:
+            at, sample = pending.pop(0)
+            link.submit(sample, now_host_us=at)
+            fc.poll(at)
+        link.service(t)
+        fc.poll(t)
+        t += STEP_US
+
+
+def stream(start_us, intervals_us, *, engine_us, flow_px_per_s=(0.0, 0.0), quality=200):
+    """Processed frames captured after the given intervals (the capture clock is the host
+    clock here), each submitted ``engine_us`` after its capture: ``[(submit_host_us, sample)]``.
+    The flow of a frame is the motion since the previous one."""
+    frames, t = [], start_us
+    for i, dt in enumerate([0, *intervals_us]):
+        t += dt
+        u, v = (c * dt / 1e6 for c in flow_px_per_s)
+        frames.append((t + engine_us, FlowSample(timestamp_us=t, capture_host_us=t, flow_x=u, flow_y=v,
+                                                 quality=quality if i else 0)))
+    return frames
+
+
+# The true flow of the tests: 12 px/s down the image = 0.12 rad/s about Y at f = 100 px.
+FLOW = (0.0, 12.0)
+TRUE_RATE = (0.0, 12.0 / F)
+
+
+@pytest.mark.parametrize("autopilot", ["ardupilot", "px4", "inav"])
+@pytest.mark.parametrize("interval_us, engine_us", [
+    (333_333, 300_000),   # 30 fps camera, every 10th frame processed, 0.3 s engine (numpy at 640x480)
+    (400_000, 5_000),     # a 2.5 fps camera, fast engine
+    (120_000, 5_000),     # an 8 fps camera: slower than blind_after_s for MSP, faster than INAV's timeout
+])
+def test_slow_but_steady_stream_gets_its_real_flow_through(peer, caplog, autopilot, interval_us, engine_us):
+    """Frames further apart than blind_after_s (judged on host time since the last submit,
+    not on their capture time) are reported with their real flow and quality; a keep-alive
+    goes out only once the next frame is overdue, before the autopilot's timeout where the
+    frame interval allows it; a frame interval beyond the timeout is logged once."""
+    caplog.set_level(logging.WARNING)
+    link = make_link(peer, autopilot)
+    fc = FlightController(peer, autopilot)
+    start = host_us()
+    count = 15
+    frames = stream(start, [interval_us] * (count - 1), engine_us=engine_us, flow_px_per_s=FLOW)
+    last_submit = frames[-1][0]
+    try:
+        drive(link, fc, frames, start_us=start, end_us=last_submit + 1_000_000)
+    finally:
+        link.close()
+    used = fc.used()
+    # All but the first two: the start marker, and the first interval (the stream's spacing is
+    # not known yet, so a keep-alive may come before its second frame).
+    assert len(used) >= count - 2, [m["quality"] for m in fc.messages]
+    quantum = math.radians(1 / OPFLOW_SCALE) * 1e6 / interval_us if autopilot == "inav" else 1e-6
+    for m in used:
+        assert m["rate"][0] == pytest.approx(TRUE_RATE[0], abs=quantum)
+        assert m["rate"][1] == pytest.approx(TRUE_RATE[1], rel=0.01, abs=quantum)
+        if autopilot == "px4":
+            assert m["integration_time_us"] == interval_us
+    assert link.stats["integration_restarts"] == 0
+    # Once frames stop, the keep-alive starts before the autopilot times out, whenever the
+    # frame interval itself leaves room for that.
+    after_stop = [m for m in fc.messages if m["at"] > last_submit]
+    assert after_stop and all(m["quality"] == 0 for m in after_stop)
+    timeout = TIMEOUT_US[autopilot]
+    warned = [r for r in caplog.records if "processed frames arrive every" in r.getMessage()]
+    if interval_us < timeout:
+        assert fc.largest_gap_us(after_us=frames[2][0]) < timeout
+        assert not warned
+    else:
+        assert after_stop[0]["at"] - last_submit <= 1.25 * interval_us + STEP_US
+        assert len(warned) == 1 and "0.20 s timeout" in warned[0].getMessage()
+
+
+def test_blindness_counts_from_the_submit_not_from_the_capture(peer):
+    """A 100 fps camera whose frames each reach the link 0.3 s after capture (engine
+    latency) is not blind: no keep-alive, every report good."""
+    link = make_link(peer, "px4", message_rate_hz=50)
+    fc = FlightController(peer, "px4")
+    start = host_us()
+    frames = stream(start, [10_000] * 99, engine_us=300_000, flow_px_per_s=FLOW)
+    try:
+        drive(link, fc, frames, start_us=frames[0][0], end_us=frames[-1][0] + STEP_US)
+    finally:
+        link.close()
+    assert link.stats["blind_reports"] == 0
+    assert len(fc.used()) == 49 and len(fc.messages) == 50  # 50 Hz after the start marker
+
+
+@pytest.mark.parametrize("autopilot", ["ardupilot", "px4", "inav"])
+def test_restart_starts_the_autopilots_interval_at_once(peer, autopilot):
+    """After a stall (integration restarts) and after a blind period (keep-alives), the
+    first good report must not be divided by more time than its counts cover: a quality-0
+    report goes out at the restart frame itself."""
+    link = make_link(peer, autopilot, message_rate_hz=50)
+    fc = FlightController(peer, autopilot)
+    start = host_us()
+    # 100 fps; a 120 ms stall (shorter than the keep-alive delay), then a 400 ms blind period.
+    intervals = [10_000] * 30 + [120_000] + [10_000] * 30 + [400_000] + [10_000] * 30
+    # 1 rad/s: 11.5 MSP counts per 20 ms message, so one count is < 10 % of a rate
+    frames = stream(start, intervals, engine_us=3_000, flow_px_per_s=(0.0, 100.0))
+    try:
+        drive(link, fc, frames, start_us=start, end_us=frames[-1][0] + STEP_US)
+    finally:
+        link.close()
+    used = fc.used()
+    assert len(used) >= 40
+    quantum = math.radians(1 / OPFLOW_SCALE) * 1e6 / 20_000 if autopilot == "inav" else 1e-6
+    for m in used:  # every report the autopilot uses has the true rate, the first after a restart too
+        assert m["rate"][1] == pytest.approx(1.0, rel=1e-4, abs=quantum)
+    # The marker: quality 0, sent when the restart frame was submitted.
+    restart_submits = [frames[31][0], frames[62][0]]
+    for at in restart_submits:
+        marker = [m for m in fc.messages if m["at"] == at]
+        assert len(marker) == 1 and marker[0]["quality"] == 0
+        if "time_usec" in marker[0]:
+            assert marker[0]["time_usec"] == at - 3_000     # the restart frame's capture time
+    if autopilot == "px4":
+        after = [m for m in fc.messages if m["at"] > restart_submits[1]]
+        assert after[0]["quality"] > 0 and after[0]["integration_time_us"] == 20_000
+    assert link.stats["integration_restarts"] == 2 and link.stats["blind_reports"] >= 2
+
+
+@pytest.mark.parametrize("autopilot", ["px4", "inav"])
+def test_keepalive_before_a_late_frame_keeps_the_interval_but_not_its_quality(peer, autopilot):
+    """A slow stream (0.3 s) whose frame comes late (0.42 s, past the keep-alive delay but
+    not a gap): the keep-alive does not discard the pending interval, and the report that
+    closes it goes out with quality 0 — the autopilot's interval began at the keep-alive."""
+    link = make_link(peer, autopilot)
+    fc = FlightController(peer, autopilot)
+    start = host_us()
+    intervals = [300_000] * 8 + [420_000] + [300_000] * 5
+    frames = stream(start, intervals, engine_us=5_000, flow_px_per_s=FLOW)
+    try:
+        drive(link, fc, frames, start_us=start, end_us=frames[-1][0] + STEP_US)
+    finally:
+        link.close()
+    late_submit = frames[9][0]
+    keepalives = [m for m in fc.messages if frames[8][0] < m["at"] < late_submit]
+    assert len(keepalives) == 1 and keepalives[0]["quality"] == 0
+    late = [m for m in fc.messages if m["at"] == late_submit]
+    assert len(late) == 1 and late[0]["quality"] == 0 and not late[0]["used"]
+    if autopilot == "px4":
+        assert late[0]["integration_time_us"] == 420_000   # the frames' interval, not discarded
+    assert link.stats["integration_restarts"] == 0
+    after = [m for m in fc.messages if m["at"] > late_submit]
+    assert len(after) == 5 and all(m["used"] for m in after)
+    quantum = math.radians(1 / OPFLOW_SCALE) * 1e6 / 300_000 if autopilot == "inav" else 1e-6
+    for m in fc.used():
+        assert m["rate"][1] == pytest.approx(TRUE_RATE[1], rel=0.01, abs=quantum)
+
+
+def test_extra_values_follow_their_frames_flow_message(peer):
+    """NAMED_VALUE_FLOATs are queued after the frame's OPTICAL_FLOW: at 115200 baud four of
+    them would delay it by ~10 ms."""
+    link = make_link(peer, "ardupilot", extra_values=True)
+    fc = FlightController(peer, "ardupilot")
+    extras = (("expansion", 0.1), ("ttc_s", -1.0), ("balanceLR", 0.0), ("balanceTB", 0.0))
+    start = host_us()
+    frames = [(at, FlowSample(timestamp_us=s.timestamp_us, capture_host_us=s.capture_host_us, flow_x=s.flow_x,
+                              flow_y=s.flow_y, quality=200, extras=extras))
+              for at, s in stream(start, [10_000] * 60, engine_us=3_000, flow_px_per_s=FLOW)]
+    try:
+        drive(link, fc, frames, start_us=start, end_us=frames[-1][0] + STEP_US)
+    finally:
+        link.close()
+    named = 0
+    last_flow_ms = None
+    for _, m in fc.wire:  # wire order
+        if m.get_type() == "OPTICAL_FLOW":
+            last_flow_ms = m.time_usec // 1000
+        elif m.get_type() == "NAMED_VALUE_FLOAT":
+            named += 1
+            assert last_flow_ms == m.time_boot_ms, "a frame's extras went out before its flow message"
+    assert named >= 4 * 2
