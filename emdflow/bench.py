@@ -31,10 +31,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import statistics
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -276,9 +278,95 @@ def _environment() -> str:
     )
 
 
+def _size_list(text: str) -> tuple[tuple[int, int], ...]:
+    """argparse type of ``--sizes``: comma-separated ``WxH`` → ``((w, h), ...)``, px."""
+    from .tools.video_io import parse_size
+
+    try:
+        return tuple(parse_size(item) for item in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated WIDTHxHEIGHT, "
+                                         "e.g. 320x240,640x480") from None
+
+
+def _delay_list(text: str) -> tuple[int, ...]:
+    """argparse type of ``--delays``: comma-separated frames."""
+    from .tools import number_list
+
+    return number_list(text, int)
+
+
+def _output_problem(path: str, option: str) -> str | None:
+    """Why ``path`` cannot be written (checked before the minutes of the run), or None."""
+    target = Path(path)
+    parent = target.resolve().parent
+    if not parent.is_dir():
+        return f"folder {parent} does not exist"
+    if target.is_dir():
+        return "is a folder"
+    if not os.access(parent, os.W_OK):
+        return f"folder {parent} is not writable"
+    if option == "--plot":
+        from matplotlib.backend_bases import FigureCanvasBase
+
+        ext = target.suffix.lower()
+        if not ext:
+            return "no file ending to choose the image type; use .png"
+        if ext[1:] not in FigureCanvasBase.get_supported_filetypes():
+            return f"matplotlib cannot write {ext} files; use .png"
+    return None
+
+
+def _check_arguments(parser: argparse.ArgumentParser, args) -> dict:
+    """Usage errors (parser.error, exit 2) before anything is rendered or timed; returns
+    the engine's keyword arguments."""
+    from .params import EngineParams
+    from .synthetic import MIN_SIDE, load_texture
+    from .tools import DIS_MIN_LONG_SIDE
+
+    try:
+        load_texture(args.texture)
+    except ValueError as exc:
+        parser.error(f"--texture: {exc}")
+    for option, value, low in (("--block", args.block, 1), ("--rounds", args.rounds, 1),
+                               ("--warmup", args.warmup, 0)):
+        if value < low:  # (0 blocks: no median; 0 frames per block: a division by zero)
+            parser.error(f"{option} {value}: must be at least {low}")
+    if not math.isfinite(args.drift):
+        parser.error(f"--drift {args.drift:g}: must be a finite number")
+    for w, h in args.sizes:
+        if min(w, h) < MIN_SIDE:
+            parser.error(f"--sizes {w}x{h}: both sides must be at least {MIN_SIDE} px "
+                         "(the flight renderer's smallest frame)")
+        if not args.stages and max(w, h) < DIS_MIN_LONG_SIDE:
+            parser.error(f"--sizes {w}x{h}: OpenCV DIS (one of the methods timed) needs a side of at "
+                         f"least {DIS_MIN_LONG_SIDE} px")
+    kwargs = dict(MODELS[args.model])
+    given = []
+    if args.delays is not None:
+        kwargs["delays"] = args.delays
+        given.append(f"--delays {','.join(map(str, args.delays))}")
+    if args.evidence_row_step:
+        kwargs["evidence_row_step"] = args.evidence_row_step
+        given.append(f"--evidence-row-step {args.evidence_row_step}")
+    try:  # the engine's own checks, before the flight is rendered
+        EngineParams(**kwargs)
+    except (TypeError, ValueError) as exc:
+        parser.error(f"{' '.join(given) or f'--model {args.model}'}: {exc}")
+    for option, path in (("--plot", args.plot), ("--json", args.json)):
+        problem = _output_problem(path, option) if path else None
+        if problem:
+            parser.error(f"{option} {path}: {problem}")
+    return kwargs
+
+
 def main(argv=None) -> int:
+    """``emdflow bench``; returns the exit code (usage errors: SystemExit 2, one line naming
+    the option)."""
     parser = argparse.ArgumentParser(prog="emdflow bench", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--sizes", default="320x240,640x480", help="comma-separated WxH (default: %(default)s)")
+    parser.add_argument("--sizes", type=_size_list, default="320x240,640x480",
+                        help="comma-separated WxH, sides >= 8 px; for DIS in the timing table one "
+                             "side >= 12 px (default: %(default)s)")
     parser.add_argument("--block", type=int, default=50, help="frames per timed block (default: %(default)s)")
     parser.add_argument("--rounds", type=int, default=7, help="alternating rounds (default: %(default)s)")
     parser.add_argument("--warmup", type=int, default=2,
@@ -288,7 +376,7 @@ def main(argv=None) -> int:
     parser.add_argument("--model", default="paper", choices=tuple(MODELS),
                         help="detector model (default: %(default)s; extended = the daemon's default: "
                              "delays 1, 2, 4 at scale 1, scale 15 and the adaptive threshold)")
-    parser.add_argument("--delays", default=None,
+    parser.add_argument("--delays", type=_delay_list, default=None,
                         help="temporal delays of the engine instead, e.g. 1,2,4 (fixed threshold)")
     parser.add_argument("--evidence-row-step", type=int, default=0,
                         help="rows between the rows that feed the summary's evidence (default: 0, "
@@ -304,21 +392,8 @@ def main(argv=None) -> int:
                              "large bright and dark regions the motion alone changes the frame's "
                              "brightness, which the extended model's compensation then takes out)")
     args = parser.parse_args(argv)
-    from .synthetic import load_texture
-
-    try:
-        load_texture(args.texture)
-    except ValueError as exc:
-        parser.error(f"--texture: {exc}")
-    try:
-        sizes = [tuple(int(v) for v in s.lower().split("x")) for s in args.sizes.split(",")]
-    except ValueError:
-        parser.error(f"--sizes {args.sizes!r}: expected e.g. 320x240,640x480")
-    kwargs = dict(MODELS[args.model])
-    if args.delays is not None:
-        kwargs["delays"] = tuple(int(d) for d in args.delays.split(","))
-    if args.evidence_row_step:
-        kwargs["evidence_row_step"] = args.evidence_row_step
+    kwargs = _check_arguments(parser, args)
+    sizes = args.sizes
     print(f"# emdflow bench — {_environment()}; model: {args.model}"
           + (f", delays {kwargs['delays']}" if args.delays is not None else "")
           + (f", evidence every {args.evidence_row_step} row(s)" if args.evidence_row_step else "")
@@ -335,12 +410,19 @@ def main(argv=None) -> int:
                             backend_kwargs=kwargs, texture=args.texture,
                             progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
     print(format_table(results))
-    if args.plot:
-        write_plot(results, args.plot)
-        print(f"plot written to {args.plot}")
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump({f"{w}x{h}": r for (w, h), r in results.items()}, fh, indent=2)
+    path = None
+    try:  # (the paths were checked before the run; a full disk shows only now)
+        if args.plot:
+            path = args.plot
+            write_plot(results, path)
+            print(f"plot written to {path}")
+        if args.json:
+            path = args.json
+            with open(path, "w") as fh:
+                json.dump({f"{w}x{h}": r for (w, h), r in results.items()}, fh, indent=2)
+    except OSError as exc:
+        print(f"emdflow bench: error: {path}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
     return 0
 
 

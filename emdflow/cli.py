@@ -14,6 +14,7 @@ usage, 1 when the engine cannot start (e.g. no OpenCL platform), 130 on Ctrl-C.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 from pathlib import Path
@@ -62,10 +63,11 @@ def run_flow(args) -> int:
     from emdflow.tools.flowviz import render_flow_frame
     from emdflow.tools.video_io import VideoWriter, open_frames, parse_size
 
-    if args.fps is not None and args.fps <= 0:
-        raise ToolError(f"--fps {args.fps:g}: must be > 0", 2)
-    if args.max_flow <= 0:
-        raise ToolError(f"--max-flow {args.max_flow:g}: must be > 0", 2)
+    # (argparse's float() takes "nan" and "inf", which pass a "<= 0" test)
+    if args.fps is not None and not (math.isfinite(args.fps) and args.fps > 0):
+        raise ToolError(f"--fps {args.fps:g}: must be a finite number > 0 (frames/s)", 2)
+    if not (math.isfinite(args.max_flow) and args.max_flow > 0):
+        raise ToolError(f"--max-flow {args.max_flow:g}: must be a finite number > 0 (px/frame)", 2)
     try:
         size = parse_size(args.size) if args.size else None
     except ValueError as e:
@@ -73,6 +75,14 @@ def run_flow(args) -> int:
     for path in (args.npz, args.snapshot):
         if path and not Path(path).resolve().parent.is_dir():
             raise ToolError(f"{path}: folder {Path(path).resolve().parent} does not exist", 2)
+    if args.snapshot:
+        import cv2
+
+        # known before the whole video is processed, not after
+        if not cv2.haveImageWriter(args.snapshot):
+            ext = Path(args.snapshot).suffix
+            why = f"OpenCV cannot write {ext} images" if ext else "no file ending to choose the image type"
+            raise ToolError(f"--snapshot {args.snapshot}: {why}; use .png", 2)
     if args.input and args.output and Path(args.input).resolve() == Path(args.output).resolve():
         raise ToolError(f"{args.output}: output would overwrite the input", 2)
     source = open_frames(args.input, size=size, fps=args.fps, max_frames=args.max_frames)
@@ -178,14 +188,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _run_bench(argv) -> int:
+    import importlib
     import importlib.util
 
     if importlib.util.find_spec("emdflow.bench") is None:
         print("emdflow bench: error: the benchmark module emdflow.bench is not part of this installation",
               file=sys.stderr)
         return 2
-    from emdflow import bench
-
+    # (through sys.modules, not the package attribute: a test may stand in for the module)
+    bench = importlib.import_module("emdflow.bench")
     return bench.main(list(argv))
 
 
@@ -197,15 +208,23 @@ def main(argv=None) -> int:
 
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "bench":
-        return _run_bench(argv[1:])
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if not getattr(args, "command", None):
-        parser.print_help(sys.stderr)
-        return 2
-    prog = f"emdflow {args.command}"
+        # (its own parser, but the same error handling as the other subcommands)
+        prog = "emdflow bench"
+
+        def run():
+            return _run_bench(argv[1:])
+    else:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        if not getattr(args, "command", None):
+            parser.print_help(sys.stderr)
+            return 2
+        prog = f"emdflow {args.command}"
+
+        def run():
+            return args.run(args)
     try:
-        return int(args.run(args) or 0)
+        return int(run() or 0)
     except ToolError as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return e.code

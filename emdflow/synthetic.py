@@ -15,13 +15,28 @@ evaluation tool, the benchmark and the daemon's ``synthetic:`` source.
 from __future__ import annotations
 
 import dataclasses
+import math
 from functools import lru_cache
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-__all__ = ["TEXTURES", "load_texture", "CameraFlight", "FlightTruth"]
+__all__ = ["TEXTURES", "MIN_SIDE", "load_texture", "CameraFlight", "FlightTruth"]
+
+#: Smallest frame side :class:`CameraFlight` renders, px.
+MIN_SIDE = 8
+
+# The renderer's ground coordinates stay small: OpenCV's warpAffine finds a sample far
+# outside the texture by reflecting it back one texture length at a time (time grows with
+# the distance; NaN or a saturated coordinate never comes back), and its fixed-point
+# coordinates saturate beyond 2**21 px.
+#: Beyond this many reflection periods from the texture the image centre is folded back
+#: (the reflected ground repeats every period; nearer flights render bit for bit as before).
+_FOLD_PERIODS = 16
+#: A frame's view may be at most this many texture sizes across (a zoom flight receding
+#: for long); beyond, render() raises ValueError.
+_MAX_VIEW_TEXTURES = 256
 
 #: Names of bundled photographs usable as ground textures (scikit-image's ``data`` module).
 #: Besides these (and image files), ``"immunohistochemistry"`` (a stained tissue section:
@@ -118,6 +133,28 @@ class FlightTruth:
     expansion_rate: float = 0.0
 
 
+def _finite(name: str, value) -> float:
+    """``value`` as a float; ValueError naming ``name`` unless it is a finite number."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}={value!r}: expected a number") from None
+    if not math.isfinite(number):
+        raise ValueError(f"{name}={value!r}: must be a finite number")
+    return number
+
+
+def _finite_pair(name: str, pair, unit: str) -> tuple[float, float]:
+    """``(x, y)`` as floats; ValueError naming ``name`` unless both are finite numbers."""
+    try:
+        x, y = (float(v) for v in pair)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}={pair!r}: expected two numbers (x, y), {unit}") from None
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise ValueError(f"{name}={pair!r}: both components must be finite numbers, {unit}")
+    return x, y
+
+
 class CameraFlight:
     """A camera flight over a textured ground plane with known image motion.
 
@@ -142,14 +179,25 @@ class CameraFlight:
     expansion_rate : float
         Zoom flight: relative growth of image scale per frame (1/frame), as when the
         camera approaches the ground; the flow field is then radial about the centre.
+        Must be > -1.
     ground_scale : float
         Ground texture pixels per output pixel at frame 0 (values < 1 magnify the
-        photograph, > 1 shrink it).
+        photograph, > 1 shrink it); > 0.
     supersample : int
         Rendering oversampling factor per axis before area averaging.
     seed : int
         Seed of the noise generator; frame ``t`` uses ``seed + t`` so any frame can be
         rendered again on its own.
+    start : (float, float), optional
+        Ground position (texture px) under the image centre at frame 0; default the
+        texture's centre.
+
+    Raises
+    ------
+    ValueError
+        If a side is below :data:`MIN_SIDE` px, a number is NaN or infinite, or
+        ``expansion_rate``, ``ground_scale`` or ``supersample`` is out of range (naming
+        the parameter).
     """
 
     def __init__(
@@ -169,25 +217,30 @@ class CameraFlight:
         seed: int = 0,
         start: tuple[float, float] | None = None,
     ):
-        if width < 8 or height < 8:
-            raise ValueError(f"frame size {width}x{height}: both sides must be at least 8 px")
+        if width < MIN_SIDE or height < MIN_SIDE:
+            raise ValueError(f"frame size {width}x{height}: both sides must be at least {MIN_SIDE} px")
         if supersample < 1:
             raise ValueError(f"supersample={supersample}: must be >= 1")
+        # NaN or infinity would reach cv2.warpAffine, which then never returns
+        self.flow = _finite_pair("flow", flow, "px/frame")
+        self.noise_sigma = _finite("noise_sigma", noise_sigma)
+        self.contrast = _finite("contrast", contrast)
+        self.exposure_drift = _finite("exposure_drift", exposure_drift)
+        self.expansion_rate = _finite("expansion_rate", expansion_rate)
+        if self.expansion_rate <= -1.0:  # the image scale (1 + r)**t would reach 0
+            raise ValueError(f"expansion_rate={expansion_rate!r}: must be > -1 (scale growth per frame)")
+        self.ground_scale = _finite("ground_scale", ground_scale)
+        if self.ground_scale <= 0.0:
+            raise ValueError(f"ground_scale={ground_scale!r}: must be > 0 (ground px per image px)")
         self.texture_name = str(texture)
         self.texture = load_texture(texture)
         self.width = int(width)
         self.height = int(height)
-        self.flow = (float(flow[0]), float(flow[1]))
-        self.noise_sigma = float(noise_sigma)
-        self.contrast = float(contrast)
-        self.exposure_drift = float(exposure_drift)
         self.drift_frames = max(1, int(drift_frames))
-        self.expansion_rate = float(expansion_rate)
-        self.ground_scale = float(ground_scale)
         self.supersample = int(supersample)
         self.seed = int(seed)
         th, tw = self.texture.shape
-        self.start = start if start is not None else (tw / 2.0, th / 2.0)
+        self.start = _finite_pair("start", start, "texture px") if start is not None else (tw / 2.0, th / 2.0)
 
     def truth(self, t: int) -> FlightTruth:
         """Ground truth of frame ``t`` (motion from frame ``t−1`` to ``t``)."""
@@ -195,7 +248,10 @@ class CameraFlight:
 
     def _camera(self, t: int) -> tuple[float, float, float]:
         """Ground position of the image centre and ground px per image px at frame t."""
-        m = self.ground_scale * (1.0 + self.expansion_rate) ** (-t)
+        try:
+            m = self.ground_scale * (1.0 + self.expansion_rate) ** (-t)
+        except OverflowError:  # (a float power beyond 1e308 raises instead of giving inf)
+            m = math.inf
         # Image flow +u means the ground moves right in the image: the camera moves left
         # over the ground. For a zoom flight the ground pixel under the centre stays put.
         if self.expansion_rate == 0.0:
@@ -210,8 +266,32 @@ class CameraFlight:
         return cx, cy, m
 
     def render(self, t: int) -> np.ndarray:
-        """Render frame ``t`` as a 2-D uint8 array of shape (height, width)."""
-        cx, cy, m = self._camera(int(t))
+        """Render frame ``t`` as a 2-D uint8 array of shape (height, width).
+
+        Raises
+        ------
+        ValueError
+            If the frame's ground coordinates overflow (a flight of astronomically many
+            pixels) or its view is more than 256 texture sizes across (a zoom flight that
+            has receded too far): OpenCV cannot render either in reasonable time.
+        """
+        t = int(t)
+        cx, cy, m = self._camera(t)
+        th, tw = self.texture.shape
+        # BORDER_REFLECT_101 repeats the ground every 2 (n - 1) px
+        period_x, period_y = 2.0 * (tw - 1), 2.0 * (th - 1)
+        if not (math.isfinite(cx) and math.isfinite(cy) and math.isfinite(m)):
+            raise ValueError(f"frame {t}: the camera's ground position ({cx:g}, {cy:g}) px or scale {m:g} "
+                             "overflows")
+        if max(self.width, self.height) * m > _MAX_VIEW_TEXTURES * max(tw, th):
+            raise ValueError(f"frame {t}: {m:g} ground px per image px (expansion_rate={self.expansion_rate:g}): "
+                             f"the view would be more than {_MAX_VIEW_TEXTURES} widths of the {tw}x{th} "
+                             "texture across")
+        # far flights: shift by whole periods (exact in floating point; same samples)
+        if period_x > 0 and abs(cx) > _FOLD_PERIODS * period_x:
+            cx = math.fmod(cx, period_x)
+        if period_y > 0 and abs(cy) > _FOLD_PERIODS * period_y:
+            cy = math.fmod(cy, period_y)
         s = self.supersample
         W, H = self.width * s, self.height * s
         # Affine map from supersampled output pixel centres to ground coordinates.

@@ -32,8 +32,13 @@ from __future__ import annotations
 import ast
 import contextlib
 
-__all__ = ["ToolError", "add_engine_arguments", "engine_kwargs", "interp_weights", "make_estimator",
-           "number_list", "progress_bar"]
+__all__ = ["DIS_MIN_LONG_SIDE", "ToolError", "add_engine_arguments", "engine_kwargs", "interp_weights",
+           "make_estimator", "number_list", "progress_bar"]
+
+#: OpenCV DIS (preset ULTRAFAST, patches of 8 px) needs a frame whose longer side is at
+#: least this many px (measured with OpenCV 5.0 for every size from 8x8 to 79x79: it
+#: refuses exactly those whose sides are both below 12).
+DIS_MIN_LONG_SIDE = 12
 
 
 class ToolError(Exception):

@@ -715,9 +715,10 @@ def config_from_args(args) -> EvalConfig:
     Raises
     ------
     ValueError
-        On a bad size, count or texture (naming it).
+        On a bad size, count, speed, direction or texture (naming it).
     """
-    from emdflow.synthetic import load_texture
+    from emdflow.synthetic import MIN_SIDE, load_texture
+    from emdflow.tools import DIS_MIN_LONG_SIDE
     from emdflow.tools.video_io import parse_size
 
     over = {}
@@ -729,7 +730,13 @@ def config_from_args(args) -> EvalConfig:
         if getattr(args, attr):
             over[key] = getattr(args, attr)
     if args.size:
-        over["width"], over["height"] = parse_size(args.size)
+        w, h = over["width"], over["height"] = parse_size(args.size)
+        if min(w, h) < MIN_SIDE:
+            raise ValueError(f"--size {args.size}: both sides must be at least {MIN_SIDE} px "
+                             "(the flight renderer's smallest frame)")
+        if max(w, h) < DIS_MIN_LONG_SIDE and not args.no_dis:
+            raise ValueError(f"--size {args.size}: OpenCV DIS needs a side of at least {DIS_MIN_LONG_SIDE} px "
+                             "(or skip it with --no-dis)")
     if args.frames is not None:
         if args.frames < 1:
             raise ValueError(f"--frames {args.frames}: must be at least 1")
@@ -738,8 +745,13 @@ def config_from_args(args) -> EvalConfig:
         if args.repeats < 1:
             raise ValueError(f"--repeats {args.repeats}: must be at least 1")
         over["repeats"] = args.repeats
-    if any(s <= 0 for s in over.get("speeds", ())):
-        raise ValueError("--speeds: every speed must be > 0")
+    # (float() takes "nan" and "inf": the flight's renderer would never return)
+    bad = [s for s in over.get("speeds", ()) if not (math.isfinite(s) and s > 0)]
+    if bad:
+        raise ValueError(f"--speeds {bad[0]:g}: every speed must be a finite number > 0 (px/frame)")
+    bad = [d for d in over.get("directions", ()) if not math.isfinite(d)]
+    if bad:
+        raise ValueError(f"--directions {bad[0]:g}: every direction must be a finite number (degrees)")
     over["seed"] = args.seed
     over["dis"] = not args.no_dis
     return quick_config(**over) if args.quick else EvalConfig(**over)

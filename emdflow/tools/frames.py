@@ -23,6 +23,7 @@ full yet (flow 0, quality 0).
 
 from __future__ import annotations
 
+import math
 import sys
 
 __all__ = ["csv_header", "format_row", "flow_to_rate", "add_arguments", "run"]
@@ -86,10 +87,11 @@ def run(args) -> int:
     from emdflow.tools import ToolError, make_estimator, progress_bar
     from emdflow.tools.video_io import open_frames, parse_size
 
-    if args.fps is not None and args.fps <= 0:
-        raise ToolError(f"--fps {args.fps:g}: must be > 0", 2)
-    if args.focal_length_px is not None and args.focal_length_px <= 0:
-        raise ToolError(f"--focal-length-px {args.focal_length_px:g}: must be > 0", 2)
+    # (argparse's float() takes "nan" and "inf", which pass a "<= 0" test)
+    if args.fps is not None and not (math.isfinite(args.fps) and args.fps > 0):
+        raise ToolError(f"--fps {args.fps:g}: must be a finite number > 0 (frames/s)", 2)
+    if args.focal_length_px is not None and not (math.isfinite(args.focal_length_px) and args.focal_length_px > 0):
+        raise ToolError(f"--focal-length-px {args.focal_length_px:g}: must be a finite number > 0 (px)", 2)
     try:
         size = parse_size(args.size) if args.size else None
     except ValueError as e:

@@ -18,6 +18,7 @@ offending path.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import re
 import sys
@@ -216,12 +217,13 @@ def parse_synthetic(uri: str) -> dict:
 
     Keys: ``texture`` (bundled name or image file), ``u``, ``v`` (px/frame), ``frames``,
     ``size`` (WxH), ``noise`` (σ, gray levels), ``contrast``, ``drift`` (relative exposure
-    change over the clip), ``zoom`` (scale growth per frame), ``fps``, ``seed``.
+    change over the clip), ``zoom`` (scale growth per frame, > -1), ``fps``, ``seed``.
+    Numbers must be finite.
 
     Raises
     ------
     InputError
-        On an unknown key or a bad value, naming the URI.
+        On an unknown key or a bad value, naming the URI and the key.
     """
     opts = dict(SYNTHETIC_DEFAULTS)
     body = uri.split(":", 1)[1]
@@ -239,12 +241,17 @@ def parse_synthetic(uri: str) -> dict:
                 opts[key] = float(value)
         except ValueError:
             raise InputError(f"{uri}: bad value for {key}: {value!r}") from None
+        # float() takes "nan" and "inf": the renderer would never return
+        if isinstance(opts[key], float) and not math.isfinite(opts[key]):
+            raise InputError(f"{uri}: bad value for {key}: {value.strip()!r} (must be a finite number)")
     try:
         opts["size"] = parse_size(opts["size"])
     except ValueError as e:
         raise InputError(f"{uri}: {e}") from None
     if opts["frames"] < 1 or opts["fps"] <= 0:
         raise InputError(f"{uri}: frames and fps must be positive")
+    if opts["zoom"] <= -1.0:  # the image scale (1 + zoom)**t would reach 0
+        raise InputError(f"{uri}: zoom={opts['zoom']:g}: must be > -1 (scale growth per frame)")
     return opts
 
 
@@ -259,24 +266,27 @@ def _open_synthetic(uri, size, fps, max_frames) -> FrameSource:
                               expansion_rate=o["zoom"], seed=o["seed"])
     except ValueError as e:
         raise InputError(f"{uri}: {e}") from None
-    files = _RenderedFrames(flight, o["frames"])
+    files = _RenderedFrames(flight, o["frames"], uri)
     return FrameSource(uri, None, files, files[0], fps or o["fps"], len(files), size, max_frames)
 
 
 class _RenderedFrames:
     """Frames of a flight rendered on demand (a sequence, so FrameSource treats it like files)."""
 
-    def __init__(self, flight, count):
-        self.flight, self.count = flight, count
+    def __init__(self, flight, count, uri):
+        self.flight, self.count, self.uri = flight, count, uri
 
     def __len__(self):
         return self.count
 
     def __getitem__(self, t):
-        return self.flight.render(t)
+        try:
+            return self.flight.render(t)
+        except ValueError as e:  # e.g. a zoom flight receded too far to render
+            raise InputError(f"{self.uri}: {e}") from None
 
     def __iter__(self):
-        return (self.flight.render(t) for t in range(self.count))
+        return (self[t] for t in range(self.count))
 
 
 def open_frames(path, *, size=None, fps=None, max_frames=None) -> FrameSource:
