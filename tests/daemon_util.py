@@ -171,3 +171,27 @@ def engine_backend() -> str:
     """Engine backend for process-level tests: OpenCL where a platform exists (CI installs
     PoCL), else the numpy reference; ``EMDFLOW_TEST_BACKEND`` overrides."""
     return os.environ.get("EMDFLOW_TEST_BACKEND") or ("opencl" if opencl_available() else "numpy")
+
+
+class FaultySource:
+    """A real source that fails the way a camera does: unplugged at read ``fail_at`` (a
+    SourceError; the daemon then reopens it), or one frame of the wrong size at read
+    ``bad_at``."""
+
+    def __init__(self, inner, *, fail_at=None, bad_at=None):
+        self.inner, self.fail_at, self.bad_at, self.reads = inner, fail_at, bad_at, 0
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def read(self):
+        from firmware_py.sources import Frame, SourceError
+
+        self.reads += 1
+        if self.reads == self.fail_at:
+            raise SourceError(f"{self.inner.uri}: read failed (USB camera unplugged)")
+        frame = self.inner.read()
+        if self.reads == self.bad_at:
+            image = np.zeros((frame.image.shape[0] + 8, frame.image.shape[1]), np.uint8)
+            return Frame(image, frame.timestamp_us, frame.capture_host_us, frame.index)
+        return frame

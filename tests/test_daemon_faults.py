@@ -11,15 +11,14 @@ import socket
 import subprocess
 import time
 
-import numpy as np
 import pytest
 
 from firmware_py.config import Config
 from firmware_py.daemon import Daemon
-from firmware_py.sources import Frame, SourceError, make_source
+from firmware_py.sources import make_source
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # shared helpers
 from daemon_util import (  # noqa: E402
-    Drain, PtyPair, engine_backend, flight_frames, parse_mavlink, run_cli, start_cli, write_video,
+    Drain, FaultySource, PtyPair, engine_backend, flight_frames, parse_mavlink, run_cli, start_cli, write_video,
 )
 
 
@@ -60,27 +59,6 @@ def test_source_that_ends_is_reopened_while_heartbeats_continue(tmp_path):
     assert ("HEARTBEAT", None) in gap                             # heartbeats went on meanwhile
 
 
-class _FaultySource:
-    """A real source that fails the way a camera does: unplugged at read ``fail_at``, or one
-    frame of the wrong size at read ``bad_at``."""
-
-    def __init__(self, inner, *, fail_at=None, bad_at=None):
-        self.inner, self.fail_at, self.bad_at, self.reads = inner, fail_at, bad_at, 0
-
-    def __getattr__(self, name):
-        return getattr(self.inner, name)
-
-    def read(self):
-        self.reads += 1
-        if self.reads == self.fail_at:
-            raise SourceError(f"{self.inner.uri}: read failed (USB camera unplugged)")
-        frame = self.inner.read()
-        if self.reads == self.bad_at:
-            image = np.zeros((frame.image.shape[0] + 8, frame.image.shape[1]), np.uint8)
-            return Frame(image, frame.timestamp_us, frame.capture_host_us, frame.index)
-        return frame
-
-
 def _run_inprocess(tmp_path, factory, frames):
     config = Config()
     config.set("source", "uri", "synthetic:u=2,v=1")
@@ -109,7 +87,7 @@ def test_source_that_raises_is_reopened_and_link_reports_blind(tmp_path, caplog)
 
     def factory():
         inner = make_source("synthetic:u=2,v=1", width=96, height=72, fps=100)
-        made.append(_FaultySource(inner, fail_at=15 if not made else None))
+        made.append(FaultySource(inner, fail_at=15 if not made else None))
         return made[-1]
 
     code, daemon, msgs = _run_inprocess(tmp_path, factory, frames=40)
@@ -125,7 +103,7 @@ def test_source_that_raises_is_reopened_and_link_reports_blind(tmp_path, caplog)
 
 def test_frame_of_wrong_size_is_skipped_with_a_clear_line(tmp_path, caplog):
     def factory():
-        return _FaultySource(make_source("synthetic:u=2,v=1", width=96, height=72, fps=100), bad_at=10)
+        return FaultySource(make_source("synthetic:u=2,v=1", width=96, height=72, fps=100), bad_at=10)
 
     code, daemon, msgs = _run_inprocess(tmp_path, factory, frames=20)
     assert code == 0

@@ -457,36 +457,45 @@ def test_v4l2_same_aspect_ratio_is_only_scaled(caplog):
     assert "camera delivers 64x48, scaled by 0.500 to 32x24" in caplog.text
 
 
-def test_daemon_focal_length_from_fov_accounts_for_the_crop():
+def _cropping_camera_daemon(*, frames, source_class=V4L2Source, links=None, **daemon_settings):
+    """A daemon asking for 320x240 from a 70° camera that delivers 640x400 (cropped to its
+    centre 533x400), on the numpy engine, with a link that records its focal lengths."""
     from firmware_py.config import Config
     from firmware_py.daemon import Daemon
 
     sensor = flight_frames(4, width=640, height=400)
 
     def factory():
-        return V4L2Source("0", width=320, height=240, capture_factory=lambda d, a: _FakeV4L2Capture(
+        return source_class("0", width=320, height=240, capture_factory=lambda d, a: _FakeV4L2Capture(
             d, a, buffers=lambda i: sensor[i % 4].reshape(1, -1).copy(), size=(640, 400), interval_s=0.01))
 
     config = Config()
     config.set("source", "uri", "v4l2:0")
     config.set("optics", "horizontal_fov_deg", 70.0)
     config.set("engine", "backend", "numpy")
-    config.frames = 1
-    daemon = Daemon(config, source_factory=factory, link_factory=lambda f: _NullLink())
+    for key, value in daemon_settings.items():
+        config.set("daemon", key, value)
+    config.frames = frames
+    links = [] if links is None else links
+    return Daemon(config, source_factory=factory, link_factory=lambda f: links.append(_NullLink(f)) or links[-1])
+
+
+#: focal length of the 320x240 frames cut from the 640x400 image of a 70° lens, px
+_F_CROP = 640 / 2 / math.tan(math.radians(70.0) / 2) * 320 / 533
+
+
+def test_daemon_focal_length_from_fov_accounts_for_the_crop():
+    daemon = _cropping_camera_daemon(frames=1)
     daemon.run()
-    f_delivered = 640 / 2 / math.tan(math.radians(70.0) / 2)
-    assert daemon.focal_length_px == pytest.approx(f_delivered * 320 / 533, rel=1e-6)
+    assert daemon.focal_length_px == pytest.approx(_F_CROP, rel=1e-6)
 
 
 def test_camera_absent_at_start_gets_its_focal_length_when_it_opens():
     """A camera that is not there at start-up: the daemon starts with the focal length of
     the asked size; when the camera opens and delivers another aspect ratio (cropped), the
     link gets the focal length of the crop from then on."""
-    from firmware_py.config import Config
-    from firmware_py.daemon import Daemon
     from firmware_py.sources import SourceError
 
-    sensor = flight_frames(4, width=640, height=400)
     attempts = []
 
     class Late(V4L2Source):
@@ -496,23 +505,12 @@ def test_camera_absent_at_start_gets_its_focal_length_when_it_opens():
                 raise SourceError("v4l2:0: no such device (unplugged)")
             super().open()
 
-    def factory():
-        return Late("0", width=320, height=240, capture_factory=lambda d, a: _FakeV4L2Capture(
-            d, a, buffers=lambda i: sensor[i % 4].reshape(1, -1).copy(), size=(640, 400), interval_s=0.01))
-
-    config = Config()
-    config.set("source", "uri", "v4l2:0")
-    config.set("optics", "horizontal_fov_deg", 70.0)
-    config.set("engine", "backend", "numpy")
-    config.set("daemon", "reopen_backoff_s", 0.05)
-    config.frames = 2
     links = []
-    daemon = Daemon(config, source_factory=factory, link_factory=lambda f: links.append(_NullLink(f)) or links[-1])
+    daemon = _cropping_camera_daemon(frames=2, source_class=Late, links=links, reopen_backoff_s=0.05)
     assert daemon.run() == 0
     f_asked = 320 / 2 / math.tan(math.radians(70.0) / 2)
-    f_crop = 640 / 2 / math.tan(math.radians(70.0) / 2) * 320 / 533
-    assert len(attempts) >= 2 and links[0].focal_lengths == [pytest.approx(f_asked), pytest.approx(f_crop)]
-    assert daemon.focal_length_px == pytest.approx(f_crop)
+    assert len(attempts) >= 2 and links[0].focal_lengths == [pytest.approx(f_asked), pytest.approx(_F_CROP)]
+    assert daemon.focal_length_px == pytest.approx(_F_CROP)
 
 
 class _NullLink:

@@ -16,25 +16,10 @@ import emdflow
 from emdflow.synthetic import CameraFlight
 from firmware_py.config import Config
 from firmware_py.daemon import Daemon
-from firmware_py.sources import SourceError, make_source
+from firmware_py.sources import make_source
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # shared helpers
-from daemon_util import Drain, PtyPair, engine_backend, flight_frames, parse_mavlink, write_video  # noqa: E402
-
-
-class _Unplugged:
-    """A real source whose camera is unplugged at read ``fail_at`` (then reopened)."""
-
-    def __init__(self, inner, fail_at):
-        self.inner, self.fail_at, self.reads = inner, fail_at, 0
-
-    def __getattr__(self, name):
-        return getattr(self.inner, name)
-
-    def read(self):
-        self.reads += 1
-        if self.reads == self.fail_at:
-            raise SourceError(f"{self.inner.uri}: read failed (USB camera unplugged)")
-        return self.inner.read()
+from daemon_util import (  # noqa: E402
+    Drain, FaultySource, PtyPair, engine_backend, flight_frames, parse_mavlink, write_video)
 
 
 class _SlowerThanRequested:
@@ -101,7 +86,7 @@ def test_keepalive_starts_before_the_autopilot_times_out(tmp_path, autopilot, bl
 
     def factory():
         inner = make_source("synthetic:u=2,v=1", width=96, height=72, fps=100)
-        made.append(_Unplugged(inner, fail_at=20 if not made else None))
+        made.append(FaultySource(inner, fail_at=20 if not made else None))
         return made[-1]
 
     log_path = tmp_path / "sent.csv"

@@ -151,19 +151,26 @@ def test_random_bytes_from_the_autopilot_side_msp(tmp_path):
         peer.close()
 
 
-@pytest.mark.parametrize("suffix", [".csv", ".jsonl"])
-def test_message_log(tmp_path, suffix):
+def _fly_logged(tmp_path, log_path, *, frames, autopilot):
+    """Fly ``frames`` frames at 1 px/frame through a link logging to ``log_path``; the
+    messages the autopilot's side received (parsed), including what was flushed on close."""
     peer = PtyPeer(tmp_path / "ttyFC")
-    log_path = tmp_path / ("sent" + suffix)
-    link = open_link(LinkConfig(port=peer.path, baud=115200, autopilot="both", focal_length_px=400.0,
+    link = open_link(LinkConfig(port=peer.path, baud=115200, autopilot=autopilot, focal_length_px=400.0,
                                 message_log=str(log_path)))
     sink = bytearray()
     try:
-        FrameFeeder(link, fps=FPS).frames(60, flow_y=1.0, peer=peer, sink=sink)
+        FrameFeeder(link, fps=FPS).frames(frames, flow_y=1.0, peer=peer, sink=sink)
     finally:
         link.close()
+        sink.extend(peer.read())
         peer.close()
-    sent = robust_parse(bytes(sink))
+    return robust_parse(bytes(sink))
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".jsonl"])
+def test_message_log(tmp_path, suffix):
+    log_path = tmp_path / ("sent" + suffix)
+    sent = _fly_logged(tmp_path, log_path, frames=60, autopilot="both")
     if suffix == ".csv":
         with open(log_path, newline="") as f:
             rows = list(csv.DictReader(f))
@@ -186,17 +193,7 @@ def test_message_log_survives_a_daemon_restart(tmp_path, suffix):
     log_path = tmp_path / ("sent" + suffix)
     sent = []
     for run in range(2):
-        peer = PtyPeer(tmp_path / "ttyFC")
-        link = open_link(LinkConfig(port=peer.path, baud=115200, autopilot="px4", focal_length_px=400.0,
-                                    message_log=str(log_path)))
-        sink = bytearray()
-        try:
-            FrameFeeder(link, fps=FPS).frames(30, flow_y=1.0, peer=peer, sink=sink)
-        finally:
-            link.close()
-            sink.extend(peer.read())
-            peer.close()
-        sent += [m.get_type() for m in robust_parse(bytes(sink))]
+        sent += [m.get_type() for m in _fly_logged(tmp_path, log_path, frames=30, autopilot="px4")]
         if run == 0:
             with open(log_path, "a") as f:
                 f.write('1234,OPTICAL_FLOW_RAD,56,' if suffix == ".csv" else '{"host_us":1234,"mess')
