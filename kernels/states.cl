@@ -15,10 +15,10 @@
  * EngineParams.brightness_ratio_q), a channel compares 256 now - rq then with
  * +-(256 T + 128) instead (box sums from the tables for every k > 1: the difference table
  * holds now - then only): for a gain within +-50 % in 16-bit lanes (gain16_short, and
- * gain16_wide for k = 13, 15), otherwise in 32-bit lanes; rq = 256, the usual case, takes the paths above unchanged. A
- * moving camera changes the frame's brightness too (content enters and leaves the view:
- * over the camera photograph at 2-3 px/frame every frame has rq != 256), so the
- * compensated path is a common one, not only an exposure drift's.
+ * gain16_wide for k = 13, 15), otherwise in 32-bit lanes; rq = 256 takes the paths above
+ * unchanged. A moving camera changes the frame's brightness too (content enters and
+ * leaves the view: over the camera photograph at 2-3 px/frame every frame has rq != 256),
+ * so the compensated path is a common one, not only an exposure drift's.
  * Also counts nonzero states per channel, textured pixels and saturated pixels. */
 
 inline ushort16 box16(__global const ushort *S, int y, int x, int r)
