@@ -7,7 +7,7 @@ import numpy as np
 from .field import FlowField
 from .params import EngineParams
 from .reference import (STAT_BRIGHTENING, STAT_STEP_CHANGED, STAT_U_DETECTIONS, STAT_V_DETECTIONS,
-                        ReferenceEngine)
+                        ReferenceEngine, _Codes)
 
 __all__ = ["FlowEstimator", "BACKENDS"]
 
@@ -31,19 +31,7 @@ def _empty_output(height: int, width: int, stats, hist, positions):
     stats[STAT_U_DETECTIONS] = stats[STAT_V_DETECTIONS] = 0
     codes = np.zeros((height, width), np.int8)
     empty = None if hist is None else np.zeros_like(hist)
-    return _Unpacked(codes, codes.copy()), stats, empty, None if positions is None else np.zeros_like(positions)
-
-
-class _Unpacked:
-    """Codes already unpacked, behind the ``decode()`` the field calls on first access."""
-
-    __slots__ = ("codes",)
-
-    def __init__(self, u_code, v_code):
-        self.codes = (u_code, v_code)
-
-    def decode(self):
-        return self.codes
+    return _Codes(codes, codes.copy()), stats, empty, None if positions is None else np.zeros_like(positions)
 
 
 def _is_brightness_step(stats, pixels: int) -> bool:

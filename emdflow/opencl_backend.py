@@ -208,9 +208,7 @@ class _Layout:
         self.SAT_SLOTS = 1 + max((d for k, d in params.channels if k > 1), default=0)
         # difference table S_t - S_(t-1) for the delay-1 channels at scales 3..11
         self.DSAT = int(any(d == 1 and 1 < k <= 11 for k, d in params.channels))
-        chans = params.channels
-        if len(chans) > 15:
-            raise ValueError(f"{len(chans)} channels: at most 15 (scales x delays) are supported")
+        chans = params.channels  # (at most 15: EngineParams checks it)
         self.channels = chans
         self.rings = [2 * d + 1 for _, d in chans]
         self.bases = [int(b) for b in np.cumsum([0] + self.rings[:-1])]

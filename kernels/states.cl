@@ -40,19 +40,29 @@ inline void gain16(int8 now_lo, int8 now_hi, int8 then_lo, int8 then_hi, int rq,
     *n = pack16((short16)(convert_short8(g_lo < -T256), convert_short8(g_hi < -T256)));
 }
 
-/* The same test in 16-bit lanes, 16 pixels, for box sums below 2^15 (k <= 11) and
- * |delta| < 128, delta = rq - 256: with d = now - then, 256 now - rq then = 256 d - delta
- * then, and with then = 256 h + l (h <= 120, l <= 255), delta then = 256 delta h + delta l.
- * d and T are whole numbers, so 256 d - delta then > 256 T + 128 <=> d > T + delta h +
- * floor((delta l + 128) / 256), and < -(256 T + 128) <=> -d > T - delta h + floor((128 -
- * delta l) / 256): the same bits as gain16, exactly. |delta h| <= 15240, |delta l| <= 32385
- * and T <= 16000 (checked by the caller): no term leaves 16 bits. */
-inline void gain16_short(short16 d, ushort16 then, short delta, short T, short16 *p, short16 *n)
+/* The same test in 16-bit lanes, 16 pixels, for |delta| < 128, delta = rq - 256: with
+ * d = now - then, 256 now - rq then = 256 d - delta then, and with then = 256 h + l
+ * (l <= 255), delta then = 256 delta h + delta l. d and T are whole numbers, so
+ * 256 d - delta then > 256 T + 128 <=> d > tp = T + delta h + floor((delta l + 128) / 256),
+ * and < -(256 T + 128) <=> -d > tn = T - delta h + floor((128 - delta l) / 256): the same
+ * bits as gain16, exactly. |delta l| <= 32385; box sums below 2^15 (k <= 11: h <= 120,
+ * |delta h| <= 15240) with T <= 16000, or below 2^16 (k = 13, 15: h <= 224,
+ * |delta h| <= 28448) with T <= 4000 (checked by the caller): tp and tn fit 16 bits. */
+inline void shifted_thresholds(ushort16 then, short delta, short T, short16 *tp, short16 *tn)
 {
     const short16 h = as_short16(then >> (ushort)8), l = as_short16(then & (ushort)255);
     const short16 dh = h * delta, dl = l * delta;
-    *p = d > (T + dh + ((dl + (short)128) >> (short)8));
-    *n = -d > (T - dh + (((short)128 - dl) >> (short)8));
+    *tp = T + dh + ((dl + (short)128) >> (short)8);
+    *tn = T - dh + (((short)128 - dl) >> (short)8);
+}
+
+/* k <= 11: d = now - then is exact in 16 bits */
+inline void gain16_short(short16 d, ushort16 then, short delta, short T, short16 *p, short16 *n)
+{
+    short16 tp, tn;
+    shifted_thresholds(then, delta, T, &tp, &tn);
+    *p = d > tp;
+    *n = -d > tn;
 }
 
 /* now > then + t for 16 lanes of box sums below 2^16 and |t| < 2^15, without the 17 bits
@@ -67,15 +77,13 @@ inline short16 above_shifted(ushort16 now, ushort16 then, short16 t)
     return as_short16(lhs > then);
 }
 
-/* gain16_short's test for k = 13, 15: box sums below 2^16 (then = 256 h + l, h <= 224:
- * |delta h| <= 28448) and T <= 4000 (checked by the caller), so the shifted thresholds
- * stay within 16 bits; the comparison goes through above_shifted */
+/* k = 13, 15: now - then may need 17 bits, so the tests go through above_shifted */
 inline void gain16_wide(ushort16 now, ushort16 then, short delta, short T, short16 *p, short16 *n)
 {
-    const short16 h = as_short16(then >> (ushort)8), l = as_short16(then & (ushort)255);
-    const short16 dh = h * delta, dl = l * delta;
-    *p = above_shifted(now, then, T + dh + ((dl + (short)128) >> (short)8));
-    *n = above_shifted(then, now, T - dh + (((short)128 - dl) >> (short)8));
+    short16 tp, tn;
+    shifted_thresholds(then, delta, T, &tp, &tn);
+    *p = above_shifted(now, then, tp);
+    *n = above_shifted(then, now, tn);
 }
 
 /* gain16_short for 32 pixels (d0, then0: the first 16) */
