@@ -50,6 +50,9 @@ SIZES = ((320, 240), (640, 480))
 #: The ground of the benchmark's flight (``--texture``).
 DEFAULT_TEXTURE = "gravel"
 
+#: The per-round DIS / engine ratios: result key and the engine's method.
+_DIS_PAIRED = (("dis_per_opencl_paired", "opencl"), ("dis_per_dense_paired", "opencl-dense"))
+
 
 def _frames(width: int, height: int, count: int, drift: float = 0.0,
             texture: str = DEFAULT_TEXTURE) -> list[np.ndarray]:
@@ -135,7 +138,7 @@ def run_benchmark(*, sizes=SIZES, block: int = 50, rounds: int = 7, numpy_block:
         results[(width, height)] = {name: statistics.median(v) for name, v in samples.items()}
         # DIS / engine within each round (blocks seconds apart share the host's load of
         # the moment), then the median over the rounds
-        for key, engine in (("dis_per_opencl_paired", "opencl"), ("dis_per_dense_paired", "opencl-dense")):
+        for key, engine in _DIS_PAIRED:
             results[(width, height)][key] = statistics.median(
                 d / o for d, o in zip(samples["dis"], samples[engine]))
     return results
@@ -149,13 +152,14 @@ def format_table(results: dict) -> str:
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for (w, h), r in results.items():
-        paired = r.get("dis_per_opencl_paired")
-        paired_dense = r.get("dis_per_dense_paired")
+        # DIS / engine: the ratio of the medians, then the per-round median (empty if absent)
+        dis_cells = ""
+        for key, engine in _DIS_PAIRED:
+            paired = r.get(key)
+            dis_cells += f"| {r['dis'] / r[engine]:.2f}x | {'' if paired is None else f'{paired:.2f}x'} "
         lines.append(
             f"| {w}x{h} | {r['opencl']:.3f} ms | {r['opencl-dense']:.3f} ms | {r['opencl+summary']:.3f} ms "
-            f"| {r['numpy']:.1f} ms | {r['dis']:.3f} ms | {r['blur']:.3f} ms | {r['dis'] / r['opencl']:.2f}x "
-            f"| {'' if paired is None else f'{paired:.2f}x'} | {r['dis'] / r['opencl-dense']:.2f}x "
-            f"| {'' if paired_dense is None else f'{paired_dense:.2f}x'} "
+            f"| {r['numpy']:.1f} ms | {r['dis']:.3f} ms | {r['blur']:.3f} ms {dis_cells}"
             f"| {r['opencl'] / r['blur']:.1f}x | {r['numpy'] / r['opencl']:.0f}x |"
         )
     return "\n".join(lines)
@@ -321,8 +325,8 @@ def _check_arguments(parser: argparse.ArgumentParser, args) -> dict:
     """Usage errors (parser.error, exit 2) before anything is rendered or timed; returns
     the engine's keyword arguments."""
     from .params import EngineParams
-    from .synthetic import MIN_SIDE, load_texture
-    from .tools import DIS_MIN_LONG_SIDE
+    from .synthetic import load_texture
+    from .tools import frame_size_problem
 
     try:
         load_texture(args.texture)
@@ -335,12 +339,9 @@ def _check_arguments(parser: argparse.ArgumentParser, args) -> dict:
     if not math.isfinite(args.drift):
         parser.error(f"--drift {args.drift:g}: must be a finite number")
     for w, h in args.sizes:
-        if min(w, h) < MIN_SIDE:
-            parser.error(f"--sizes {w}x{h}: both sides must be at least {MIN_SIDE} px "
-                         "(the flight renderer's smallest frame)")
-        if not args.stages and max(w, h) < DIS_MIN_LONG_SIDE:
-            parser.error(f"--sizes {w}x{h}: OpenCV DIS (one of the methods timed) needs a side of at "
-                         f"least {DIS_MIN_LONG_SIDE} px")
+        problem = frame_size_problem(w, h, dis=not args.stages, dis_role=" (one of the methods timed)")
+        if problem:
+            parser.error(f"--sizes {w}x{h}: {problem}")
     kwargs = dict(MODELS[args.model])
     given = []
     if args.delays is not None:
@@ -363,10 +364,13 @@ def _check_arguments(parser: argparse.ArgumentParser, args) -> dict:
 def main(argv=None) -> int:
     """``emdflow bench``; returns the exit code (usage errors: SystemExit 2, one line naming
     the option)."""
+    from .synthetic import MIN_SIDE
+    from .tools import DIS_MIN_LONG_SIDE
+
     parser = argparse.ArgumentParser(prog="emdflow bench", description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", type=_size_list, default="320x240,640x480",
-                        help="comma-separated WxH, sides >= 8 px; for DIS in the timing table one "
-                             "side >= 12 px (default: %(default)s)")
+                        help=f"comma-separated WxH, sides >= {MIN_SIDE} px; for DIS in the timing table one "
+                             f"side >= {DIS_MIN_LONG_SIDE} px (default: %(default)s)")
     parser.add_argument("--block", type=int, default=50, help="frames per timed block (default: %(default)s)")
     parser.add_argument("--rounds", type=int, default=7, help="alternating rounds (default: %(default)s)")
     parser.add_argument("--warmup", type=int, default=2,

@@ -14,7 +14,6 @@ usage, 1 when the engine cannot start (e.g. no OpenCL platform), 130 on Ctrl-C.
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 from pathlib import Path
@@ -58,16 +57,13 @@ def run_flow(args) -> int:
     import numpy as np
 
     from emdflow import summarize
-    from emdflow.tools import ToolError, make_estimator, progress_bar
+    from emdflow.tools import ToolError, check_positive, make_estimator, progress_bar
     from emdflow.tools.flo import write_flo
     from emdflow.tools.flowviz import render_flow_frame
     from emdflow.tools.video_io import VideoWriter, open_frames, parse_size
 
-    # (argparse's float() takes "nan" and "inf", which pass a "<= 0" test)
-    if args.fps is not None and not (math.isfinite(args.fps) and args.fps > 0):
-        raise ToolError(f"--fps {args.fps:g}: must be a finite number > 0 (frames/s)", 2)
-    if not (math.isfinite(args.max_flow) and args.max_flow > 0):
-        raise ToolError(f"--max-flow {args.max_flow:g}: must be a finite number > 0 (px/frame)", 2)
+    check_positive("--fps", args.fps, "frames/s")
+    check_positive("--max-flow", args.max_flow, "px/frame")
     try:
         size = parse_size(args.size) if args.size else None
     except ValueError as e:
@@ -188,8 +184,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _run_bench(argv) -> int:
-    import importlib
-    import importlib.util
+    import importlib.util  # (binds importlib too: import_module below)
 
     if importlib.util.find_spec("emdflow.bench") is None:
         print("emdflow bench: error: the benchmark module emdflow.bench is not part of this installation",

@@ -147,12 +147,10 @@ def _finite(name: str, value) -> float:
 def _finite_pair(name: str, pair, unit: str) -> tuple[float, float]:
     """``(x, y)`` as floats; ValueError naming ``name`` unless both are finite numbers."""
     try:
-        x, y = (float(v) for v in pair)
+        x, y = pair
     except (TypeError, ValueError):
         raise ValueError(f"{name}={pair!r}: expected two numbers (x, y), {unit}") from None
-    if not (math.isfinite(x) and math.isfinite(y)):
-        raise ValueError(f"{name}={pair!r}: both components must be finite numbers, {unit}")
-    return x, y
+    return _finite(f"{name}[0]", x), _finite(f"{name}[1]", y)
 
 
 class CameraFlight:
@@ -241,6 +239,10 @@ class CameraFlight:
         self.seed = int(seed)
         th, tw = self.texture.shape
         self.start = _finite_pair("start", start, "texture px") if start is not None else (tw / 2.0, th / 2.0)
+        # BORDER_REFLECT_101 repeats the ground every 2 (n - 1) px
+        self._periods = (2.0 * (tw - 1), 2.0 * (th - 1))
+        # the largest ground px per image px render() accepts
+        self._max_view = _MAX_VIEW_TEXTURES * max(tw, th)
 
     def truth(self, t: int) -> FlightTruth:
         """Ground truth of frame ``t`` (motion from frame ``t−1`` to ``t``)."""
@@ -277,13 +279,12 @@ class CameraFlight:
         """
         t = int(t)
         cx, cy, m = self._camera(t)
-        th, tw = self.texture.shape
-        # BORDER_REFLECT_101 repeats the ground every 2 (n - 1) px
-        period_x, period_y = 2.0 * (tw - 1), 2.0 * (th - 1)
+        period_x, period_y = self._periods
         if not (math.isfinite(cx) and math.isfinite(cy) and math.isfinite(m)):
             raise ValueError(f"frame {t}: the camera's ground position ({cx:g}, {cy:g}) px or scale {m:g} "
                              "overflows")
-        if max(self.width, self.height) * m > _MAX_VIEW_TEXTURES * max(tw, th):
+        if max(self.width, self.height) * m > self._max_view:
+            th, tw = self.texture.shape
             raise ValueError(f"frame {t}: {m:g} ground px per image px (expansion_rate={self.expansion_rate:g}): "
                              f"the view would be more than {_MAX_VIEW_TEXTURES} widths of the {tw}x{th} "
                              "texture across")
@@ -311,7 +312,7 @@ class CameraFlight:
         image = (image - 128.0) * self.contrast + 128.0
         image = image * gain
         if self.noise_sigma > 0:
-            rng = np.random.default_rng(self.seed + int(t))
+            rng = np.random.default_rng(self.seed + t)
             image = image + rng.normal(0.0, self.noise_sigma, image.shape).astype(np.float32)
         return np.clip(np.rint(image), 0, 255).astype(np.uint8)
 

@@ -94,11 +94,15 @@ class RecentIntervals:
 
     def __init__(self, size: int = 9):
         self._values: deque[float] = deque(maxlen=size)
+        self._typical: float | None = None
 
     def add(self, interval: float) -> None:
         """Remember one interval (any unit; values <= 0 are ignored)."""
         if interval > 0:
             self._values.append(float(interval))
+            # Computed here, once: it is read several times per frame.
+            ordered = sorted(self._values)
+            self._typical = ordered[(len(ordered) - 1) // 2]
 
     def __len__(self) -> int:
         return len(self._values)
@@ -106,10 +110,7 @@ class RecentIntervals:
     @property
     def typical(self) -> float | None:
         """Lower median of the remembered intervals, None before the first one."""
-        if not self._values:
-            return None
-        ordered = sorted(self._values)
-        return ordered[(len(ordered) - 1) // 2]
+        return self._typical
 
 
 def focal_length_px_from_fov(*, fov_deg: float, size_px: float) -> float:

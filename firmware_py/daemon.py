@@ -38,13 +38,13 @@ from .config import Config
 from .links import FlowSample
 from .sdnotify import Notifier
 from .sources import Frame, FrameSource, SourceError, host_us, make_source
+from .sources.base import _BAD_FRAME_LOG_S
 
 __all__ = ["Daemon", "SourceKeeper", "FrameMailbox", "SteadySubset", "Stats", "choose_threading"]
 
 log = logging.getLogger("emdflowd")
 
 _POLL_S = 0.01            # longest wait for a frame before servicing the link again
-_BAD_FRAME_LOG_S = 5.0    # at most one "wrong frame" line per this many seconds
 # A driver read that has not returned for this long is hung (OpenCV's V4L2 read gives up
 # after 10 s): only a new process recovers it, so the daemon exits 1 and systemd restarts it.
 _STUCK_READ_S = 20.0
@@ -336,13 +336,15 @@ class SourceKeeper:
             try:
                 frame = source.read()
             except Exception as exc:
+                error = str(exc) or type(exc).__name__
+            else:
+                error = None
+            finally:
                 self.reading_since = None
                 self._count_bad(source)
-                text = str(exc) or type(exc).__name__
-                self._fail(text if source.uri in text else f"source {source.uri}: {text}")
+            if error is not None:
+                self._fail(error if source.uri in error else f"source {source.uri}: {error}")
                 return None
-            self.reading_since = None
-            self._count_bad(source)
             if frame is None:
                 self._fail(f"source {source.uri}: end of stream")
                 return None
@@ -503,11 +505,11 @@ class Daemon:
     def _focal_length_of(self, source: FrameSource) -> float:
         """The focal length at the processing size for an opened source: a field of view
         is the lens's over the image the camera delivers, and a camera that delivers
-        another aspect ratio is centre-cropped (FrameSource.crop_fraction)."""
-        fov = self.config.optics.horizontal_fov_deg
-        if self.config.optics.focal_length_px is None and fov is not None:
-            return source.focal_length_for_hfov(fov)
-        return self.focal_length_px
+        another aspect ratio is centre-cropped (FrameSource.crop_fraction): the lens sees
+        ``1 / crop_fraction[0]`` times the processed width. Crop (1, 1) (not opened) gives
+        the start-up value."""
+        return self.config.focal_length_px(self.width / source.crop_fraction[0],
+                                           source.default_focal_length_px)
 
     def _source_opened(self, source: FrameSource) -> None:
         """A source the keeper opened later (absent at start, or reopened): if it delivers
@@ -518,7 +520,7 @@ class Daemon:
             log.warning("source %s: crop %.3f x %.3f of the delivered image: focal length %.1f px "
                         "(was %.1f px)", source.uri, *source.crop_fraction, focal, self.focal_length_px)
             self.focal_length_px = focal
-            if self.link is not None and hasattr(self.link, "set_focal_length_px"):
+            if self.link is not None:
                 self.link.set_focal_length_px(focal)
 
     def _warm_up(self, t0: float) -> None:

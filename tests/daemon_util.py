@@ -93,6 +93,28 @@ class Drain:
         return bytes(self.data)
 
 
+def run_daemon(config, *, frames=None, baud=921600, **factories):
+    """Run a :class:`~firmware_py.daemon.Daemon` in this process until it stops, its link
+    on a fresh pty (``baud``) drained in the background; ``frames`` sets ``config.frames``
+    when given; ``factories``: the Daemon's ``source_factory`` / ``estimator_factory`` /
+    ``link_factory``. Returns ``(exit_code, daemon, bytes_written)``."""
+    from firmware_py.daemon import Daemon
+
+    if frames is not None:
+        config.frames = frames
+    pty = PtyPair()
+    config.set("link", "port", pty.path)
+    config.set("link", "baud", baud)
+    drain = Drain(pty.master)
+    daemon = Daemon(config, **factories)
+    try:
+        code = daemon.run()
+    finally:
+        data = drain.stop()
+        pty.close()
+    return code, daemon, data
+
+
 def parse_mavlink(data: bytes):
     """All MAVLink messages in ``data`` with valid CRC, parsed by pymavlink."""
     from pymavlink.dialects.v20 import common as mavlink

@@ -14,11 +14,11 @@ import time
 import pytest
 
 from firmware_py.config import Config
-from firmware_py.daemon import Daemon
 from firmware_py.sources import make_source
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # shared helpers
 from daemon_util import (  # noqa: E402
-    Drain, FaultySource, PtyPair, engine_backend, flight_frames, parse_mavlink, run_cli, start_cli, write_video,
+    Drain, FaultySource, PtyPair, engine_backend, flight_frames, parse_mavlink, run_cli, run_daemon, start_cli,
+    write_video,
 )
 
 
@@ -68,17 +68,7 @@ def _run_inprocess(tmp_path, factory, frames):
     config.set("daemon", "reopen_backoff_s", 0.2)
     config.set("daemon", "blind_after_s", 0.05)
     config.set("daemon", "threading", "single")
-    config.frames = frames
-    pty = PtyPair()
-    config.set("link", "port", pty.path)
-    config.set("link", "baud", 921600)
-    drain = Drain(pty.master)
-    daemon = Daemon(config, source_factory=factory)
-    try:
-        code = daemon.run()
-    finally:
-        data = drain.stop()
-        pty.close()
+    code, daemon, data = run_daemon(config, frames=frames, source_factory=factory)
     return code, daemon, parse_mavlink(data)
 
 

@@ -357,8 +357,7 @@ def test_v4l2_run_of_bad_buffers_or_failed_read_is_a_source_error():
 def test_daemon_flies_through_a_corrupt_v4l2_frame_without_reopening():
     """The reviewer's case end to end: one undecodable MJPG buffer in a 100 frames/s stream."""
     from firmware_py.config import Config
-    from firmware_py.daemon import Daemon
-    from daemon_util import Drain, PtyPair, engine_backend, parse_mavlink
+    from daemon_util import engine_backend, parse_mavlink, run_daemon
 
     size = (96, 72)
     flight = flight_frames(30, flow=(1.5, 1.0), width=size[0], height=size[1])
@@ -379,18 +378,9 @@ def test_daemon_flies_through_a_corrupt_v4l2_frame_without_reopening():
     config.set("engine", "backend", engine_backend())
     config.set("engine", "model", "paper")
     config.set("daemon", "blind_after_s", 1.0)   # a reopen (>= 0.5 s back-off) shows in reopens
-    config.frames = 40
-    pty = PtyPair()
-    config.set("link", "port", pty.path)
-    config.set("link", "baud", 921600)
-    drain = Drain(pty.master)
     made = []
-    daemon = Daemon(config, source_factory=lambda: made.append(factory()) or made[-1])
-    try:
-        assert daemon.run() == 0
-    finally:
-        data = drain.stop()
-        pty.close()
+    code, daemon, data = run_daemon(config, frames=40, source_factory=lambda: made.append(factory()) or made[-1])
+    assert code == 0
     assert len(opens) == 1 and daemon.stats.reopens == 0 and daemon.stats.blind_periods == 0
     assert daemon.stats.processed == 40
     assert sum(source.bad_frames for source in made) == 1

@@ -15,11 +15,10 @@ import pytest
 import emdflow
 from emdflow.synthetic import CameraFlight
 from firmware_py.config import Config
-from firmware_py.daemon import Daemon
 from firmware_py.sources import make_source
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # shared helpers
 from daemon_util import (  # noqa: E402
-    Drain, FaultySource, PtyPair, engine_backend, flight_frames, parse_mavlink, write_video)
+    FaultySource, engine_backend, flight_frames, parse_mavlink, run_daemon, write_video)
 
 
 class _SlowerThanRequested:
@@ -54,26 +53,10 @@ def _config(uri, *, autopilot="px4", model="paper", settings=None):
     config.set("engine", "backend", engine_backend())
     config.set("engine", "model", model)
     config.set("link", "autopilot", autopilot)
-    config.set("link", "baud", 921600)
     config.set("daemon", "threading", "single")
     for (section, key), value in (settings or {}).items():
         config.set(section, key, value)
     return config
-
-
-def _run(config, frames, **factories):
-    config.frames = frames
-    pty = PtyPair()
-    config.set("link", "port", pty.path)
-    drain = Drain(pty.master)
-    daemon = Daemon(config, **factories)
-    try:
-        code = daemon.run()
-    finally:
-        data = drain.stop()
-        pty.close()
-    assert code == 0
-    return daemon, data
 
 
 @pytest.mark.parametrize("autopilot, blind_after_s, link_blind_after_s, timeout_s", [
@@ -94,7 +77,8 @@ def test_keepalive_starts_before_the_autopilot_times_out(tmp_path, autopilot, bl
                      settings={("source", "width"): 96, ("source", "height"): 72,
                                ("link", "message_log"): str(log_path), ("daemon", "blind_after_s"): blind_after_s,
                                ("daemon", "reopen_backoff_s"): 1.0})
-    daemon, _ = _run(config, 40, source_factory=factory)
+    code, daemon, _ = run_daemon(config, frames=40, source_factory=factory)
+    assert code == 0
     with open(log_path, newline="") as f:
         rows = [r for r in csv.DictReader(f) if r["message"] != "HEARTBEAT"]
     times = [int(r["host_us"]) for r in rows]
@@ -115,7 +99,8 @@ def test_slow_engine_gets_real_flow_through():
                                      **config.engine.estimator_options())
         return _SlowEngine(real, 0.3)
 
-    daemon, data = _run(config, 12, estimator_factory=slow)
+    code, daemon, data = run_daemon(config, frames=12, estimator_factory=slow)
+    assert code == 0
     rad = [m for m in parse_mavlink(data) if m.get_type() == "OPTICAL_FLOW_RAD"]
     good = [m for m in rad if m.quality > 0]
     assert len(good) >= 8, [m.quality for m in rad]      # the paper's model needs 3 frames
@@ -132,7 +117,8 @@ def test_frames_further_apart_than_the_reset_gap_are_not_each_a_gap(tmp_path):
     reports their real flow over their real 0.33 s interval."""
     clip = write_video(tmp_path / "slow.mkv", flight_frames(16, flow=(2.0, -1.5), width=96, height=72), fps=3.0)
     config = _config(f"video:{clip}", settings={("engine", "reset_after_gap_s"): 0.25})
-    daemon, data = _run(config, 15)
+    code, daemon, data = run_daemon(config, frames=15)
+    assert code == 0
     assert daemon.stats.resets <= 1                       # the first interval: its pace unknown yet
     rad = [m for m in parse_mavlink(data) if m.get_type() == "OPTICAL_FLOW_RAD"]
     good = [m for m in rad if m.quality > 0]
@@ -158,7 +144,8 @@ def test_extra_values_use_the_real_frame_interval(tmp_path):
     def factory():
         return _SlowerThanRequested(make_source(f"video:{clip}"), fps=100.0)
 
-    daemon, data = _run(config, 60, source_factory=factory)
+    code, daemon, data = run_daemon(config, frames=60, source_factory=factory)
+    assert code == 0
     assert daemon.fps == 100.0
     named = [m for m in parse_mavlink(data) if m.get_type() == "NAMED_VALUE_FLOAT"]
     # skip the extended model's 12 frames of history (extras go out at 5 Hz: every 10th frame)

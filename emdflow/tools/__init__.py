@@ -23,8 +23,9 @@ engine_ab
     checkout's, alternating in one process (speed changes of a few percent).
 
 This package module holds what the subcommands share: :class:`ToolError` (a one-line
-message plus an exit code), the engine options, a progress bar, and the linear soft
-binning the calibration tools measure their tables with.
+message plus an exit code), the engine options, the checks of a flight's frame size and
+of positive options, a progress bar, and the linear soft binning the calibration tools
+measure their tables with.
 """
 
 from __future__ import annotations
@@ -32,8 +33,8 @@ from __future__ import annotations
 import ast
 import contextlib
 
-__all__ = ["DIS_MIN_LONG_SIDE", "ToolError", "add_engine_arguments", "engine_kwargs", "interp_weights",
-           "make_estimator", "number_list", "progress_bar"]
+__all__ = ["DIS_MIN_LONG_SIDE", "ToolError", "add_engine_arguments", "check_positive", "engine_kwargs",
+           "frame_size_problem", "interp_weights", "make_estimator", "number_list", "progress_bar"]
 
 #: OpenCV DIS (preset ULTRAFAST, patches of 8 px) needs a frame whose longer side is at
 #: least this many px (measured with OpenCV 5.0 for every size from 8x8 to 79x79: it
@@ -47,6 +48,33 @@ class ToolError(Exception):
     def __init__(self, message: str, code: int = 2):
         super().__init__(message)
         self.code = code
+
+
+def frame_size_problem(width: int, height: int, *, dis: bool, dis_role: str = "",
+                       dis_hint: str = "") -> str | None:
+    """Why a ``width`` x ``height`` camera flight cannot be measured, or None.
+
+    Both sides must be at least :data:`emdflow.synthetic.MIN_SIDE` px (the renderer's
+    smallest frame); with ``dis`` (OpenCV DIS runs on the frames) the longer side at least
+    :data:`DIS_MIN_LONG_SIDE` px. The DIS message is ``"OpenCV DIS{dis_role} needs a side of
+    at least {DIS_MIN_LONG_SIDE} px{dis_hint}"``; the caller puts the option in front.
+    """
+    from emdflow.synthetic import MIN_SIDE
+
+    if min(width, height) < MIN_SIDE:
+        return f"both sides must be at least {MIN_SIDE} px (the flight renderer's smallest frame)"
+    if dis and max(width, height) < DIS_MIN_LONG_SIDE:
+        return f"OpenCV DIS{dis_role} needs a side of at least {DIS_MIN_LONG_SIDE} px{dis_hint}"
+    return None
+
+
+def check_positive(option: str, value, unit: str) -> None:
+    """Raise ToolError (code 2) naming ``option`` unless ``value`` is None or a finite
+    number > 0 (argparse's ``float()`` takes "nan" and "inf", which pass a ``<= 0`` test)."""
+    import math
+
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise ToolError(f"{option} {value:g}: must be a finite number > 0 ({unit})", 2)
 
 
 def interp_weights(x, nodes):

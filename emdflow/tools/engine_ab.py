@@ -37,6 +37,7 @@ import statistics
 import sys
 from pathlib import Path
 
+from emdflow.bench import DEFAULT_TEXTURE
 from emdflow.params import MODELS
 from emdflow.tools import ToolError
 
@@ -64,7 +65,7 @@ def load_checkout(root: Path, name: str = "emdflow_other"):
 
 
 def compare(other, width: int, height: int, model: str = "paper", rounds: int = 12, block: int = 50,
-            warmup: int = 2, other_options: dict | None = None, texture: str = "gravel",
+            warmup: int = 2, other_options: dict | None = None, texture: str = DEFAULT_TEXTURE,
             drift: float = 0.0) -> dict:
     """Alternating blocks of ``other.FlowEstimator`` (with ``other_options`` on top of the
     model's) and this checkout's on one camera flight (over ``texture``, with an exposure
@@ -95,7 +96,7 @@ def main(argv=None) -> int:
     ap.add_argument("--other-option", action="append", default=[], metavar="KEY=VALUE",
                     help="estimator keyword for the other engine only (repeatable), e.g. "
                          "evidence_row_step=1")
-    ap.add_argument("--texture", default="gravel", help="ground of the flight (default: %(default)s)")
+    ap.add_argument("--texture", default=DEFAULT_TEXTURE, help="ground of the flight (default: %(default)s)")
     ap.add_argument("--drift", type=float, default=0.0,
                     help="exposure ramp of this relative size across the 40-frame clip")
     a = ap.parse_args(argv)

@@ -717,8 +717,8 @@ def config_from_args(args) -> EvalConfig:
     ValueError
         On a bad size, count, speed, direction or texture (naming it).
     """
-    from emdflow.synthetic import MIN_SIDE, load_texture
-    from emdflow.tools import DIS_MIN_LONG_SIDE
+    from emdflow.synthetic import load_texture
+    from emdflow.tools import frame_size_problem
     from emdflow.tools.video_io import parse_size
 
     over = {}
@@ -731,12 +731,9 @@ def config_from_args(args) -> EvalConfig:
             over[key] = getattr(args, attr)
     if args.size:
         w, h = over["width"], over["height"] = parse_size(args.size)
-        if min(w, h) < MIN_SIDE:
-            raise ValueError(f"--size {args.size}: both sides must be at least {MIN_SIDE} px "
-                             "(the flight renderer's smallest frame)")
-        if max(w, h) < DIS_MIN_LONG_SIDE and not args.no_dis:
-            raise ValueError(f"--size {args.size}: OpenCV DIS needs a side of at least {DIS_MIN_LONG_SIDE} px "
-                             "(or skip it with --no-dis)")
+        problem = frame_size_problem(w, h, dis=not args.no_dis, dis_hint=" (or skip it with --no-dis)")
+        if problem:
+            raise ValueError(f"--size {args.size}: {problem}")
     if args.frames is not None:
         if args.frames < 1:
             raise ValueError(f"--frames {args.frames}: must be at least 1")

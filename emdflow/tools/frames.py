@@ -23,7 +23,6 @@ full yet (flow 0, quality 0).
 
 from __future__ import annotations
 
-import math
 import sys
 
 __all__ = ["csv_header", "format_row", "flow_to_rate", "add_arguments", "run"]
@@ -84,14 +83,11 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     """Run ``emdflow frames`` with parsed arguments; returns the exit code."""
     from emdflow import summarize
-    from emdflow.tools import ToolError, make_estimator, progress_bar
+    from emdflow.tools import ToolError, check_positive, make_estimator, progress_bar
     from emdflow.tools.video_io import open_frames, parse_size
 
-    # (argparse's float() takes "nan" and "inf", which pass a "<= 0" test)
-    if args.fps is not None and not (math.isfinite(args.fps) and args.fps > 0):
-        raise ToolError(f"--fps {args.fps:g}: must be a finite number > 0 (frames/s)", 2)
-    if args.focal_length_px is not None and not (math.isfinite(args.focal_length_px) and args.focal_length_px > 0):
-        raise ToolError(f"--focal-length-px {args.focal_length_px:g}: must be a finite number > 0 (px)", 2)
+    check_positive("--fps", args.fps, "frames/s")
+    check_positive("--focal-length-px", args.focal_length_px, "px")
     try:
         size = parse_size(args.size) if args.size else None
     except ValueError as e:

@@ -247,7 +247,6 @@ class FlowLink:
         self._last_flow_host_us: int | None = None
         self._last_report_end_us: int | None = None
         self._keepalive_in_interval = False  # a keep-alive went out since the pending interval began
-        self._last_restarts = 0
         self._internal_error_logged = False
         if config.port is None:
             log.warning("no serial port configured: %s messages are counted but not sent", self.protocol)
@@ -329,9 +328,8 @@ class FlowLink:
         """Convert pixels to angles with this focal length (px) from the next report on:
         the daemon calls it when a camera opened after start-up delivers another image
         (aspect ratio, hence crop) than the one the link was made for."""
-        if not (focal_length_px > 0 and math.isfinite(focal_length_px)):
-            raise ValueError(f"focal_length_px must be positive, got {focal_length_px}")
-        self.integrator.focal_length_px = float(focal_length_px)
+        self.config = replace(self.config, focal_length_px=focal_length_px)  # validates it
+        self.integrator.focal_length_px = float(self.config.focal_length_px)
 
     def latencies_us(self) -> list[int]:
         """Capture-to-write latencies (µs) of flow messages written since the previous call.
@@ -375,12 +373,11 @@ class FlowLink:
         integ = self.integrator
         started = not integ.add_frame(timestamp_us=sample.timestamp_us, flow_x_px=sample.flow_x,
                                       flow_y_px=sample.flow_y, quality=sample.quality)
-        if integ.restart_count != self._last_restarts:
-            self._last_restarts = integ.restart_count
-            self.stats["integration_restarts"] = integ.restart_count
-            self._reset_carry()
         if started:
-            # The autopilot's next interval must begin at this frame as well.
+            # The first frame or a restart (the only time restart_count changes). The
+            # autopilot's next interval must begin at this frame as well; the quality-0
+            # marker also forgets the protocol's carried remainders (_emit).
+            self.stats["integration_restarts"] = integ.restart_count
             self._keepalive_in_interval = False
             marker = self._quality0_interval(end_us=int(sample.timestamp_us),
                                              span_us=self._quality0_span_us(now))
@@ -456,9 +453,11 @@ class FlowLink:
                             sum_u_px=0.0, sum_v_px=0.0, quality=0, frame_count=0)
 
     def _blind_keepalive(self, now: int) -> None:
-        since_submit = None if self._last_submit_host_us is None else now - self._last_submit_host_us
-        if since_submit is not None and since_submit < self._keepalive_after_us():
-            return
+        if self._last_submit_host_us is not None:
+            since_submit = now - self._last_submit_host_us
+            # _keepalive_after_us() is never below blind_after_s: skip it while frames arrive.
+            if since_submit < self.blind_after_s * 1e6 or since_submit < self._keepalive_after_us():
+                return
         if self._last_flow_host_us is not None and now - self._last_flow_host_us < 1e6 / BLIND_RATE_HZ:
             return
         span = self._quality0_span_us(now)

@@ -9,14 +9,19 @@ it was captured or received (for latency measurement).
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 
 import cv2
 import numpy as np
 
+from ..angular import focal_length_px_from_fov
+
 __all__ = ["Frame", "FrameSource", "SourceError", "FrameError", "Pacer", "fit_to", "centre_crop",
            "host_us"]
+
+#: At most one "frame skipped" log line per this many seconds (the sources' unconvertible
+#: buffers, the daemon's frames of the wrong size).
+_BAD_FRAME_LOG_S = 5.0
 
 
 class SourceError(RuntimeError):
@@ -112,8 +117,8 @@ class FrameSource:
         cropped, the processed frames show only ``crop_fraction[0]`` of that width, so the
         focal length in processed px is larger by ``1 / crop_fraction[0]``.
         """
-        half = math.radians(float(horizontal_fov_deg)) / 2.0
-        return self.width / 2.0 / math.tan(half) / self.crop_fraction[0]
+        return focal_length_px_from_fov(fov_deg=float(horizontal_fov_deg),
+                                        size_px=self.width / self.crop_fraction[0])
 
     def open(self) -> None:
         """Open the device or file; raise :class:`SourceError` naming it on failure."""

@@ -23,7 +23,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .base import Frame, FrameError, FrameSource, SourceError, centre_crop, fit_to, host_us
+from .base import _BAD_FRAME_LOG_S, Frame, FrameError, FrameSource, SourceError, centre_crop, fit_to, host_us
 
 __all__ = ["V4L2Source", "raw_to_gray", "PIXEL_FORMATS"]
 
@@ -39,7 +39,6 @@ _PLAUSIBLE_TIMESTAMP_US = 2_000_000
 # decoder, a format mix-up): the camera is reopened. 25 frames: 0.25 s at 100 frames/s,
 # 0.8 s at 30 — isolated corrupt frames, as USB glitches produce them, are skipped.
 BAD_FRAMES_BEFORE_REOPEN = 25
-_BAD_FRAME_LOG_S = 5.0  # at most one "frame skipped" line per this many seconds
 
 
 def raw_to_gray(raw: np.ndarray, pixel_format: str, width: int, height: int) -> np.ndarray:
