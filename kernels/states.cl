@@ -152,7 +152,7 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
          * (> T, i.e. >= T + 1) on it rounded to whole units (EngineParams.compensated_threshold) */
         const int T256 = 256 * T + 128;
         /* the gain's test fits 16-bit lanes (gain16_short) */
-        const bool short_gain = rq > 128 && rq < 384 && T <= (k <= 11 ? 16000 : 4000);
+        const bool short_gain = (rq > 128) & (rq < 384) & (T <= (k <= 11 ? 16000 : 4000));
         /* words from i_edge on hold pixels past W - 1 - r; word 0 holds x < r */
         const int i_edge = (W - r) / 32;
         int changed = 0, step_changed = 0, brightening = 0;
