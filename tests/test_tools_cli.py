@@ -445,6 +445,28 @@ def test_engine_ab_other_option_times_an_option_against_the_default(capsys):
     assert "no-such-ground" in capsys.readouterr().err
 
 
+def test_engine_ab_summary_times_summarize_on_each_engines_fields(capsys, monkeypatch):
+    """``--summary`` alternates the two checkouts' ``summarize`` over each one's own fields
+    (every call gets a ready field with evidence) instead of their updates."""
+    from pathlib import Path
+
+    import emdflow
+    from emdflow.tools import engine_ab
+
+    pytest.importorskip("pyopencl")
+    seen = []
+    real = emdflow.summarize
+    monkeypatch.setattr(emdflow, "summarize", lambda field: seen.append(field.ready) or real(field))
+    root = str(Path(__file__).resolve().parents[1])
+    assert engine_ab.main([root, "--size", "64x48", "--rounds", "2", "--block", "3", "--summary"]) == 0
+    assert "per summarize() call" in capsys.readouterr().out
+    assert len(seen) == 2 * (3 + 2) and all(seen)  # two rounds of 3 calls, each after 2 untimed
+    # a field without the summary's evidence cannot be summarised: one-line error
+    assert engine_ab.main([root, "--size", "64x48", "--rounds", "1", "--block", "2", "--summary",
+                           "--other-option", "summary_evidence=False"]) == 2
+    assert "summary_evidence=False" in capsys.readouterr().err
+
+
 def test_bench_model_option_runs_the_daemons_model(monkeypatch, capsys):
     """``--model extended`` benchmarks the daemon's default model (delays and adaptive
     threshold from ``emdflow.params.MODELS``); ``--delays`` overrides the delays alone."""

@@ -24,6 +24,13 @@ same checkout times the cost of an option::
 
     python -m emdflow.tools.engine_ab . --other-option evidence_row_step=1 --size 320x240
 
+``--summary`` times ``summarize`` instead of ``update``: each checkout's engine makes the
+fields of the clip once, then the two summaries alternate over them in blocks (back to
+back, so the summary's tables stay in the caches: the daemon, which calls it right after
+an update, pays more for both)::
+
+    python -m emdflow.tools.engine_ab /tmp/before --summary --model extended --size 320x240
+
 The other checkout must have the source layout (``emdflow/`` and ``kernels/`` side by
 side) and the same public API (``FlowEstimator``, ``emdflow.params.MODELS``).
 """
@@ -66,11 +73,12 @@ def load_checkout(root: Path, name: str = "emdflow_other"):
 
 def compare(other, width: int, height: int, model: str = "paper", rounds: int = 12, block: int = 50,
             warmup: int = 2, other_options: dict | None = None, texture: str = DEFAULT_TEXTURE,
-            drift: float = 0.0) -> dict:
+            drift: float = 0.0, summary: bool = False) -> dict:
     """Alternating blocks of ``other.FlowEstimator`` (with ``other_options`` on top of the
     model's) and this checkout's on one camera flight (over ``texture``, with an exposure
     ramp of ``drift``); returns the per-round ms/frame of both and the median paired
-    ratio."""
+    ratio. With ``summary``, of each checkout's ``summarize`` on its own engine's ready
+    fields of the flight instead (ms per call)."""
     import emdflow
     from emdflow.bench import _frames, alternating_blocks
 
@@ -80,9 +88,15 @@ def compare(other, width: int, height: int, model: str = "paper", rounds: int = 
     for est in engines.values():
         for frame in frames[:10]:
             est.update(frame)
+    if summary:
+        # each checkout's fields of the whole clip (ready: the history was filled above)
+        fields = {name: [est.update(frame) for frame in frames] for name, est in engines.items()}
+        methods = {name: (lambda i, f=fields[name], s=summarize: s(f[i]))
+                   for name, summarize in (("other", other.summarize), ("this", emdflow.summarize))}
+    else:
+        methods = {name: (lambda i, est=est: est.update(frames[i])) for name, est in engines.items()}
     # (the order swaps every round: a block right after the other engine's pays for its caches)
-    times = alternating_blocks({name: (lambda i, est=est: est.update(frames[i])) for name, est in engines.items()},
-                               len(frames), rounds=rounds, block=block, warmup=warmup, swap=True)
+    times = alternating_blocks(methods, len(frames), rounds=rounds, block=block, warmup=warmup, swap=True)
     return {**times, "ratio": statistics.median(o / t for o, t in zip(times["other"], times["this"]))}
 
 
@@ -99,6 +113,8 @@ def main(argv=None) -> int:
     ap.add_argument("--texture", default=DEFAULT_TEXTURE, help="ground of the flight (default: %(default)s)")
     ap.add_argument("--drift", type=float, default=0.0,
                     help="exposure ramp of this relative size across the 40-frame clip")
+    ap.add_argument("--summary", action="store_true",
+                    help="time summarize() on each engine's fields instead of update()")
     a = ap.parse_args(argv)
     options = {}
     for item in a.other_option:
@@ -118,14 +134,15 @@ def main(argv=None) -> int:
     try:
         other = load_checkout(a.checkout.resolve())
         r = compare(other, width, height, a.model, a.rounds, a.block, other_options=options,
-                    texture=a.texture, drift=a.drift)
+                    texture=a.texture, drift=a.drift, summary=a.summary)
     except (ToolError, TypeError, ValueError) as exc:
         print(f"engine_ab: {exc}", file=sys.stderr)
         return 2
     label = "".join(f" {k}={v!r}" for k, v in options.items())
     ground = a.texture + (f", drift {a.drift:+g}" if a.drift else "")
+    what = "summarize() call" if a.summary else "frame"
     print(f"{a.model} {width}x{height} over {ground}: other{label} {statistics.median(r['other']):.3f} ms, "
-          f"this {statistics.median(r['this']):.3f} ms per frame; other / this per round "
+          f"this {statistics.median(r['this']):.3f} ms per {what}; other / this per round "
           f"(median of {a.rounds}): {r['ratio']:.3f}")
     print("  rounds other:", " ".join(f"{x:.2f}" for x in r["other"]))
     print("  rounds this: ", " ".join(f"{x:.2f}" for x in r["this"]))
