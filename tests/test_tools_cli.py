@@ -458,9 +458,12 @@ def test_engine_ab_summary_times_summarize_on_each_engines_fields(capsys, monkey
     real = emdflow.summarize
     monkeypatch.setattr(emdflow, "summarize", lambda field: seen.append(field.ready) or real(field))
     root = str(Path(__file__).resolve().parents[1])
-    assert engine_ab.main([root, "--size", "64x48", "--rounds", "2", "--block", "3", "--summary"]) == 0
-    assert "per summarize() call" in capsys.readouterr().out
-    assert len(seen) == 2 * (3 + 2) and all(seen)  # two rounds of 3 calls, each after 2 untimed
+    for model in ("paper", "extended"):  # (the extended model's history is 12 frames)
+        seen.clear()
+        assert engine_ab.main([root, "--size", "64x48", "--rounds", "2", "--block", "3", "--summary",
+                               "--model", model]) == 0
+        assert "per summarize() call" in capsys.readouterr().out
+        assert len(seen) == 2 * (3 + 2) and all(seen)  # two rounds of 3 calls, each after 2 untimed
     # a field without the summary's evidence cannot be summarised: one-line error
     assert engine_ab.main([root, "--size", "64x48", "--rounds", "1", "--block", "2", "--summary",
                            "--other-option", "summary_evidence=False"]) == 2

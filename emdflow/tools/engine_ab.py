@@ -86,10 +86,10 @@ def compare(other, width: int, height: int, model: str = "paper", rounds: int = 
     engines = {"other": other.FlowEstimator(width, height, **{**MODELS[model], **(other_options or {})}),
                "this": emdflow.FlowEstimator(width, height, **MODELS[model])}
     for est in engines.values():
-        for frame in frames[:10]:
+        for frame in frames[: max(10, est.params.history_frames)]:
             est.update(frame)
     if summary:
-        # each checkout's fields of the whole clip (ready: the history was filled above)
+        # each checkout's fields of the whole clip (all ready: the history is full)
         fields = {name: [est.update(frame) for frame in frames] for name, est in engines.items()}
         methods = {name: (lambda i, f=fields[name], s=summarize: s(f[i]))
                    for name, summarize in (("other", other.summarize), ("this", emdflow.summarize))}
