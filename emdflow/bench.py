@@ -293,31 +293,29 @@ def _size_list(text: str) -> tuple[tuple[int, int], ...]:
                                          "e.g. 320x240,640x480") from None
 
 
-def _delay_list(text: str) -> tuple[int, ...]:
-    """argparse type of ``--delays``: comma-separated frames."""
-    from .tools import number_list
-
-    return number_list(text, int)
-
-
-def _output_problem(path: str, option: str) -> str | None:
+def _output_problem(path: str) -> str | None:
     """Why ``path`` cannot be written (checked before the minutes of the run), or None."""
+    from .tools import missing_folder
+
     target = Path(path)
-    parent = target.resolve().parent
-    if not parent.is_dir():
-        return f"folder {parent} does not exist"
+    if problem := missing_folder(target):
+        return problem
     if target.is_dir():
         return "is a folder"
-    if not os.access(parent, os.W_OK):
-        return f"folder {parent} is not writable"
-    if option == "--plot":
-        from matplotlib.backend_bases import FigureCanvasBase
+    if not os.access(target.resolve().parent, os.W_OK):
+        return f"folder {target.resolve().parent} is not writable"
+    return None
 
-        ext = target.suffix.lower()
-        if not ext:
-            return "no file ending to choose the image type; use .png"
-        if ext[1:] not in FigureCanvasBase.get_supported_filetypes():
-            return f"matplotlib cannot write {ext} files; use .png"
+
+def _plot_type_problem(path: str) -> str | None:
+    """Why matplotlib cannot choose an image type for ``path``, or None."""
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    ext = Path(path).suffix.lower()
+    if not ext:
+        return "no file ending to choose the image type; use .png"
+    if ext[1:] not in FigureCanvasBase.get_supported_filetypes():
+        return f"matplotlib cannot write {ext} files; use .png"
     return None
 
 
@@ -355,7 +353,7 @@ def _check_arguments(parser: argparse.ArgumentParser, args) -> dict:
     except (TypeError, ValueError) as exc:
         parser.error(f"{' '.join(given) or f'--model {args.model}'}: {exc}")
     for option, path in (("--plot", args.plot), ("--json", args.json)):
-        problem = _output_problem(path, option) if path else None
+        problem = path and (_output_problem(path) or (option == "--plot" and _plot_type_problem(path)))
         if problem:
             parser.error(f"{option} {path}: {problem}")
     return kwargs
@@ -365,7 +363,7 @@ def main(argv=None) -> int:
     """``emdflow bench``; returns the exit code (usage errors: SystemExit 2, one line naming
     the option)."""
     from .synthetic import MIN_SIDE
-    from .tools import DIS_MIN_LONG_SIDE
+    from .tools import DIS_MIN_LONG_SIDE, number_list
 
     parser = argparse.ArgumentParser(prog="emdflow bench", description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", type=_size_list, default="320x240,640x480",
@@ -380,7 +378,7 @@ def main(argv=None) -> int:
     parser.add_argument("--model", default="paper", choices=tuple(MODELS),
                         help="detector model (default: %(default)s; extended = the daemon's default: "
                              "delays 1, 2, 4 at scale 1, scale 15 and the adaptive threshold)")
-    parser.add_argument("--delays", type=_delay_list, default=None,
+    parser.add_argument("--delays", type=number_list, default=None,
                         help="temporal delays of the engine instead, e.g. 1,2,4 (fixed threshold)")
     parser.add_argument("--evidence-row-step", type=int, default=0,
                         help="rows between the rows that feed the summary's evidence (default: 0, "

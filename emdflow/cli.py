@@ -57,7 +57,7 @@ def run_flow(args) -> int:
     import numpy as np
 
     from emdflow import summarize
-    from emdflow.tools import ToolError, check_positive, make_estimator, progress_bar
+    from emdflow.tools import ToolError, check_positive, make_estimator, missing_folder, progress_bar
     from emdflow.tools.flo import write_flo
     from emdflow.tools.flowviz import render_flow_frame
     from emdflow.tools.video_io import VideoWriter, open_frames, parse_size
@@ -69,8 +69,8 @@ def run_flow(args) -> int:
     except ValueError as e:
         raise ToolError(f"--size: {e}", 2) from None
     for path in (args.npz, args.snapshot):
-        if path and not Path(path).resolve().parent.is_dir():
-            raise ToolError(f"{path}: folder {Path(path).resolve().parent} does not exist", 2)
+        if path and (problem := missing_folder(path)):
+            raise ToolError(f"{path}: {problem}", 2)
     if args.snapshot:
         import cv2
 

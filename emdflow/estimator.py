@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from .field import FlowField
-from .params import EngineParams
+from .params import EngineParams, _is_whole
 from .reference import (STAT_BRIGHTENING, STAT_STEP_CHANGED, STAT_U_DETECTIONS, STAT_V_DETECTIONS,
                         ReferenceEngine, _Codes)
 
@@ -132,7 +132,7 @@ class FlowEstimator:
         device=None,
     ):
         for name, value in (("width", width), ("height", height)):
-            if not isinstance(value, (int, np.integer)) or isinstance(value, bool):
+            if not _is_whole(value):
                 raise ValueError(f"{name} must be an integer number of pixels, got {value!r}")
         if width < 3 or height < 3:
             raise ValueError(f"frame size {width}x{height}: both sides must be at least 3 px")

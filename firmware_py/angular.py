@@ -249,8 +249,6 @@ class FlowIntegrator:
         self.max_gap_us = int(max_gap_us)
         self.max_blind_interval_us = int(max_blind_interval_us)
         self.max_interval_us = int(max_interval_us)
-        #: Typical frame interval, µs (lower median of recent good frames), None at first.
-        self.nominal_interval_us: float | None = None
         self._intervals = RecentIntervals()
         self.restart_count = 0
         self._last_us: int | None = None
@@ -288,6 +286,11 @@ class FlowIntegrator:
         """Capture timestamp of the latest frame, µs (None before the first frame)."""
         return self._last_us
 
+    @property
+    def nominal_interval_us(self) -> float | None:
+        """Typical frame interval, µs (lower median of recent good frames), None at first."""
+        return self._intervals.typical
+
     def restart(self, timestamp_us: int | None = None) -> None:
         """Forget the pending interval; the next frame (or ``timestamp_us``) starts a new one."""
         self._last_us = timestamp_us
@@ -324,7 +327,6 @@ class FlowIntegrator:
             # Learn the interval from good frames before judging the gap: a stream that slows
             # down for good is not a gap at every frame (keep-alive samples teach nothing).
             self._intervals.add(dt)
-            self.nominal_interval_us = self._intervals.typical
         blind_keepalive = q == 0 and 0 < dt <= self.max_blind_interval_us and self.elapsed_us + dt <= self.max_blind_interval_us
         if dt <= 0 or (dt > self.gap_threshold_us and not blind_keepalive):
             self.restart_count += 1

@@ -280,7 +280,7 @@ class SourceKeeper:
     def adopt(self, source: FrameSource) -> None:
         """Use an already opened source (opened at start-up to learn its size)."""
         self.source, self._opened_once = source, True
-        self._bad_seen = getattr(source, "bad_frames", 0)
+        self._bad_seen = source.bad_frames
 
     def retry_after(self, delay_s: float) -> None:
         """Schedule the next open attempt ``delay_s`` from now."""
@@ -307,7 +307,7 @@ class SourceKeeper:
             self._fail(f"source: cannot open: {exc}")
             return False
         self.source, self._delivered = source, False
-        self._bad_seen = getattr(source, "bad_frames", 0)
+        self._bad_seen = source.bad_frames
         if self._opened_once:
             self.stats.reopens += 1
             log.info("source %s reopened", source.uri)
@@ -319,7 +319,7 @@ class SourceKeeper:
     def _count_bad(self, source: FrameSource) -> None:
         """Add the frames the source itself skipped (a buffer it could not convert) to the
         daemon's bad-frame count."""
-        seen = getattr(source, "bad_frames", 0)
+        seen = source.bad_frames
         if seen != self._bad_seen:
             self.stats.bad_frames += seen - self._bad_seen
             self._bad_seen = seen
@@ -682,7 +682,7 @@ class Daemon:
                       ("balanceLR", cues.balance_lr), ("balanceTB", cues.balance_tb))
         self.link.submit(FlowSample(timestamp_us=frame.timestamp_us, capture_host_us=frame.capture_host_us,
                                     flow_x=summary.flow_x, flow_y=summary.flow_y, quality=summary.quality,
-                                    extras=extras))
+                                    extras=extras), now_host_us=t2)
         t3 = host_us()
         self.stats.stage("engine", t1 - t0)
         self.stats.stage("summary", t2 - t1)

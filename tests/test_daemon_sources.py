@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
+from firmware_py.angular import focal_length_px_from_fov
 from firmware_py.sources import Frame, SourceError, host_us, make_source, open_source, parse_uri
 from firmware_py.sources.v4l2 import V4L2Source, raw_to_gray
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # shared helpers
@@ -434,7 +435,9 @@ def test_v4l2_other_aspect_ratio_is_cropped_not_stretched(caplog):
     assert source.crop_fraction == (533 / 640, 1.0)
     fov = 70.0
     f_delivered = 640 / 2 / math.tan(math.radians(fov) / 2)            # px of the 640x400 image
-    assert source.focal_length_for_hfov(fov) == pytest.approx(f_delivered * 320 / 533, rel=1e-9)
+    # (the daemon's rule: the lens sees 1 / crop_fraction[0] of the processed width)
+    assert focal_length_px_from_fov(fov_deg=fov, size_px=source.width / source.crop_fraction[0]) == \
+        pytest.approx(f_delivered * 320 / 533, rel=1e-9)
 
 
 def test_v4l2_same_aspect_ratio_is_only_scaled(caplog):
@@ -442,7 +445,8 @@ def test_v4l2_same_aspect_ratio_is_only_scaled(caplog):
     with caplog.at_level("INFO", logger="emdflowd.v4l2"):
         source.open()
     assert source.crop_fraction == (1.0, 1.0)
-    assert source.focal_length_for_hfov(90.0) == pytest.approx(16.0)
+    assert focal_length_px_from_fov(fov_deg=90.0, size_px=source.width / source.crop_fraction[0]) == \
+        pytest.approx(16.0)
     assert not [r for r in caplog.records if r.levelname == "WARNING"]
     assert "camera delivers 64x48, scaled by 0.500 to 32x24" in caplog.text
 
@@ -513,7 +517,7 @@ class _NullLink:
     def set_focal_length_px(self, focal_length_px):
         self.focal_lengths.append(focal_length_px)
 
-    def submit(self, sample):
+    def submit(self, sample, now_host_us=None):
         pass
 
     def service(self, now_us):

@@ -34,7 +34,8 @@ import ast
 import contextlib
 
 __all__ = ["DIS_MIN_LONG_SIDE", "ToolError", "add_engine_arguments", "check_positive", "engine_kwargs",
-           "frame_size_problem", "interp_weights", "make_estimator", "number_list", "progress_bar"]
+           "frame_size_problem", "interp_weights", "make_estimator", "missing_folder", "number_list",
+           "progress_bar"]
 
 #: OpenCV DIS (preset ULTRAFAST, patches of 8 px) needs a frame whose longer side is at
 #: least this many px (measured with OpenCV 5.0 for every size from 8x8 to 79x79: it
@@ -66,6 +67,16 @@ def frame_size_problem(width: int, height: int, *, dis: bool, dis_role: str = ""
     if dis and max(width, height) < DIS_MIN_LONG_SIDE:
         return f"OpenCV DIS{dis_role} needs a side of at least {DIS_MIN_LONG_SIDE} px{dis_hint}"
     return None
+
+
+def missing_folder(path) -> str | None:
+    """``"folder F does not exist"`` when the folder an output file ``path`` would go in is
+    missing (checked before a long run, not when it ends), else None; the caller puts the
+    option or path in front."""
+    from pathlib import Path
+
+    parent = Path(path).resolve().parent
+    return None if parent.is_dir() else f"folder {parent} does not exist"
 
 
 def check_positive(option: str, value, unit: str) -> None:

@@ -756,7 +756,7 @@ def config_from_args(args) -> EvalConfig:
 
 def run(args) -> int:
     """Run ``emdflow eval`` with parsed arguments; returns the exit code."""
-    from emdflow.tools import ToolError, make_estimator, progress_bar
+    from emdflow.tools import ToolError, make_estimator, missing_folder, progress_bar
 
     if args.from_csv:
         try:
@@ -778,10 +778,8 @@ def run(args) -> int:
     except ValueError as e:
         raise ToolError(str(e), 2) from None
     for path in (args.csv, args.plot):
-        if path:
-            parent = Path(path).resolve().parent
-            if not parent.is_dir():
-                raise ToolError(f"{path}: folder {parent} does not exist", 2)
+        if path and (problem := missing_folder(path)):
+            raise ToolError(f"{path}: {problem}", 2)
 
     def factory(w, h):
         return make_estimator(args, w, h)

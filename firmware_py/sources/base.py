@@ -14,8 +14,6 @@ import time
 import cv2
 import numpy as np
 
-from ..angular import focal_length_px_from_fov
-
 __all__ = ["Frame", "FrameSource", "SourceError", "FrameError", "Pacer", "fit_to", "centre_crop",
            "host_us"]
 
@@ -107,18 +105,6 @@ class FrameSource:
     waited_us: int = 0
     bad_frames: int = 0
     crop_fraction: tuple[float, float] = (1.0, 1.0)
-
-    def focal_length_for_hfov(self, horizontal_fov_deg: float) -> float:
-        """Focal length at the processing resolution, px, of a lens whose horizontal field of
-        view over the image the camera *delivers* is ``horizontal_fov_deg`` (degrees).
-
-        ``width / 2 / tan(fov / 2)`` when the whole delivered width is used; when the
-        delivered image was wider than the processing aspect ratio and its sides were
-        cropped, the processed frames show only ``crop_fraction[0]`` of that width, so the
-        focal length in processed px is larger by ``1 / crop_fraction[0]``.
-        """
-        return focal_length_px_from_fov(fov_deg=float(horizontal_fov_deg),
-                                        size_px=self.width / self.crop_fraction[0])
 
     def open(self) -> None:
         """Open the device or file; raise :class:`SourceError` naming it on failure."""

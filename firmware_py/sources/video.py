@@ -102,7 +102,7 @@ class VideoFileSource(FrameSource):
         self.realtime = bool(realtime)
         # Documented default: f = processed width (a 53° horizontal field of view).
         self.default_focal_length_px = float(self.width)
-        self._native_size = (native_w, native_h)
+        self._note_geometry(native_w, native_h)
         #: True while the stream is decoded raw (8-bit gray file), False when converted.
         self.raw_gray = False
         self._cap: cv2.VideoCapture | None = None
@@ -121,15 +121,14 @@ class VideoFileSource(FrameSource):
         if self.raw_gray:
             cap.set(cv2.CAP_PROP_CONVERT_RGB, 0)
         self._cap = cap
-        self._note_geometry()
         self._index = 0
         if self._pacer:
             self._pacer.restart()
 
-    def _note_geometry(self) -> None:
+    def _note_geometry(self, native_w: int, native_h: int) -> None:
         """Record (and warn about) a centre crop when [source] width × height has another
-        aspect ratio than the file: x and y must be scaled alike for the link."""
-        native_w, native_h = self._native_size
+        aspect ratio than the file: x and y must be scaled alike for the link (the file's
+        size is known before it is opened; the daemon makes a new source to reopen)."""
         _, _, crop_w, crop_h = centre_crop(native_w, native_h, self.width, self.height)
         self.crop_fraction = (crop_w / native_w, crop_h / native_h)
         if (crop_w, crop_h) != (native_w, native_h):
