@@ -14,6 +14,7 @@ disk, ``POCL_CACHE_DIR``).
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import struct
@@ -26,13 +27,25 @@ import numpy as np
 from .params import ORIENTATION_BINS, EngineParams
 from .reference import POSITION_BINS, STAT_CONTRAST, STAT_FIRST_CHANGED
 
-__all__ = ["OpenCLEngine", "PackedCodes", "list_devices", "kernel_source"]
+__all__ = ["OpenCLEngine", "PackedCodes", "KernelBuildError", "list_devices", "kernel_source"]
+
+log = logging.getLogger(__name__)
 
 _INSTALL_HINT = (
     "install an OpenCL runtime: `pip install \"emdflow[pocl]\"` (pyopencl with the PoCL CPU "
     "runtime; needs binutils' `ld`, e.g. `apt-get install binutils`), or your board vendor's "
     "OpenCL ICD (e.g. `apt-get install pocl-opencl-icd`, Mali/Jetson drivers) plus "
     "`pip install \"emdflow[opencl]\"`; or use backend=\"numpy\" (slow)"
+)
+#: PoCL hands the host CPU's name, as its own LLVM knows it, to the compiler; an LLVM older
+#: than the processor names it "generic", which the compiler then rejects. (Seen with the
+#: pip wheel's PoCL 3.0, LLVM 14, on AMD Zen 5; Debian 12's PoCL 3.1 falls back to a CPU
+#: its LLVM knows.)
+_UNKNOWN_CPU_HINT = (
+    "this PoCL's compiler does not know this processor (its LLVM is older than the CPU): install "
+    "a PoCL built with a newer LLVM, e.g. the distribution's (`apt-get install pocl-opencl-icd`; "
+    "emdflow uses the first device that builds its kernels), or choose another device with "
+    "EMDFLOW_OPENCL_DEVICE (see emdflow.opencl_devices())"
 )
 _STAGES = ("common.cl", "prefilter.cl", "integral.cl", "states.cl", "evidence.cl", "evd.cl")
 _PROGRAMS: dict = {}
@@ -84,11 +97,16 @@ def list_devices() -> list[tuple[int, str]]:
     return [(i, f"{d.platform.name.strip()}: {d.name.strip()}") for i, d in enumerate(_all_devices())]
 
 
-def _pick_device(device):
-    devices = _all_devices()
+def _device_choice(device):
+    """The caller's device choice, else EMDFLOW_OPENCL_DEVICE's; None: automatic."""
     choice = device if device is not None else os.environ.get("EMDFLOW_OPENCL_DEVICE")
-    if choice is None or choice == "":
-        return devices[0]
+    return None if choice is None or choice == "" else choice
+
+
+def _pick_device(choice):
+    """The device a non-automatic choice names: an index of ``list_devices()`` or a
+    case-insensitive part of its "platform device" name."""
+    devices = _all_devices()
     if isinstance(choice, int) or (isinstance(choice, str) and choice.isdigit()):
         index = int(choice)
         if not 0 <= index < len(devices):
@@ -283,6 +301,57 @@ class _Layout:
 PORTABLE_ENV = "EMDFLOW_OPENCL_PORTABLE"
 
 
+class KernelBuildError(RuntimeError):
+    """A device's OpenCL compiler rejected the emdflow kernels (the message carries its log)."""
+
+
+_SKIPPED: set = set()
+
+
+def _first_buildable(devices, build):
+    """``(device, build(device))`` for the first device whose ``build`` does not raise
+    :class:`KernelBuildError`; the failures are logged and, if every device fails,
+    raised together. Two PoCL installations side by side (the pip wheel's and the
+    distribution's) are common, and only one of them may know the processor."""
+    failures = []
+    for device in devices:
+        try:
+            return device, build(device)
+        except KernelBuildError as exc:
+            failures.append(exc)
+            name = device.name.strip()
+            if name not in _SKIPPED:  # once per device and process, not per engine
+                _SKIPPED.add(name)
+                log.warning("OpenCL device %s cannot build the emdflow kernels; trying the next one (%s)",
+                            name, _first_error_line(str(exc)))
+    if len(failures) == 1:
+        raise failures[0]
+    raise KernelBuildError(f"none of the {len(failures)} OpenCL devices could build the emdflow kernels:\n"
+                           + "\n".join(f"- {exc}" for exc in failures))
+
+
+def _first_error_line(text: str) -> str:
+    for line in text.splitlines():
+        if "error:" in line:
+            return line.strip()
+    return text.splitlines()[0] if text else ""
+
+
+def _device_with_program(device, layout: _Layout, debug: bool):
+    """``(device, context, queue, program)``: the device chosen by the caller or
+    EMDFLOW_OPENCL_DEVICE, else the first one (in ``list_devices()`` order) that builds the
+    kernels."""
+    choice = _device_choice(device)
+
+    def build(dev):
+        ctx, queue = _context(dev)
+        return ctx, queue, _program(ctx, dev, layout, debug)
+
+    chosen, (ctx, queue, program) = _first_buildable(
+        [_pick_device(choice)] if choice is not None else _all_devices(), build)
+    return chosen, ctx, queue, program
+
+
 def _program(ctx, device, layout: _Layout, debug: bool):
     cl = _import_cl()
     source = layout.header() + ("#define DEBUG_MATCHES 1\n" if debug else "")
@@ -297,8 +366,13 @@ def _program(ctx, device, layout: _Layout, debug: bool):
     with _LOCK:
         prog = _PROGRAMS.get(key)
         if prog is None:
-            prog = _build(cl, ctx, device, source)
+            try:
+                prog = _build(cl, ctx, device, source)
+            except KernelBuildError as exc:
+                prog = exc  # a compiler that failed once fails again: not every engine retries
             _PROGRAMS[key] = prog
+    if isinstance(prog, KernelBuildError):
+        raise prog
     return prog
 
 
@@ -320,7 +394,15 @@ def _build(cl, ctx, device, source: str):
             "clear the kernel cache (POCL_CACHE_DIR, default ~/.cache/pocl) and retry"
         )
     except cl.Error as exc:
-        raise RuntimeError(f"building the emdflow OpenCL kernels failed on {device.name}: {exc}") from exc
+        raise _build_failure(device.name, str(exc)) from exc
+
+
+def _build_failure(device_name: str, log_text: str) -> KernelBuildError:
+    """The error of a failed build: the device, the compiler's log and, where the log
+    shows a known cause, what fixes it."""
+    hint = f"; {_UNKNOWN_CPU_HINT}" if "unknown target CPU" in log_text else ""
+    return KernelBuildError(f"building the emdflow OpenCL kernels failed on {device_name.strip()}: "
+                            f"{log_text}{hint}")
 
 
 _CONTEXTS: dict = {}
@@ -379,10 +461,8 @@ class OpenCLEngine:
         self._cl = cl
         self.params = params
         self.layout = lay = _Layout(width, height, params)
-        self.device = _pick_device(device)
-        self.ctx, self.queue = _context(self.device)
+        self.device, self.ctx, self.queue, self.program = _device_with_program(device, lay, debug)
         self.debug = debug
-        self.program = _program(self.ctx, self.device, lay, debug)
         mf = cl.mem_flags
         ctx = self.ctx
         tail = 64  # vector loads of the last row may run past its end

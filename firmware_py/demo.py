@@ -112,6 +112,8 @@ def run_demo(*, frames: int | None = None, config_path: str | None = None, sourc
     except ConfigError as exc:
         log.error("%s", exc)
         return 2
+    if not backend and config.engine.backend == "opencl":
+        _fall_back_without_opencl(config, out)
     daemon = Daemon(config)
     truth_source = None
     if config.source.uri.startswith("synthetic:"):
@@ -170,6 +172,23 @@ def run_demo(*, frames: int | None = None, config_path: str | None = None, sourc
         print(f"demo failed: {result['error']}", file=out, flush=True)
         return 1
     return _summary(end - start, reader, daemon, truth_source, out, result.get("code", 1))
+
+
+def _fall_back_without_opencl(config, out) -> None:
+    """The demo shows the whole appliance even where no OpenCL device can run the kernels:
+    it says why and what fixes it, and runs the numpy reference (~20 ms per 320×240 frame
+    here) instead. The daemon itself does not fall back: a flight needs the speed, so there
+    an unusable backend stops the start (exit 1) with this same error."""
+    import emdflow
+
+    width, height = config.source.width or 320, config.source.height or 240
+    try:  # builds the kernels once; the daemon's engine then reuses the process's program
+        emdflow.FlowEstimator(width, height, backend="opencl", **config.engine.estimator_options())
+    except (RuntimeError, ValueError) as exc:  # no device, none that builds, or a wrong choice
+        print(f"OpenCL is not usable here: {exc}\nThe demo runs on the numpy reference instead "
+              "(slow; outside the demo emdflowd stops with this error, unless [engine] backend = "
+              "\"numpy\" is set).", file=out, flush=True)
+        config.set("engine", "backend", "numpy")
 
 
 def _truth_rate(daemon, truth_source) -> tuple[float, float]:

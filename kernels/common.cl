@@ -126,32 +126,45 @@ inline uint pack16(short16 mask)
 /* ---- states/prefilter helpers ---- */
 /* Unsigned saturating subtraction and addition and a 32-lane mask pack. On x86 with AVX2
  * these are vpsubusw, vpaddusw and vpacksswb + vpermq + vpmovmskb (one pack for both
- * 16-lane halves); the portable versions use selects and pack16. */
-#if defined(EMD_X86_BUILTINS) && defined(__AVX2__)
+ * 16-lane halves); the portable versions use selects and pack16. The saturating x86
+ * builtins left clang in LLVM 15 (Debian 12's PoCL 3.1) for the generic elementwise
+ * ones, which compile to the same instructions: whichever the compiler has is used. */
+#ifndef __has_builtin
+#define __has_builtin(x) 0
+#endif
+#if defined(EMD_X86_BUILTINS) && defined(__AVX2__) && __has_builtin(__builtin_ia32_pmovmskb256) \
+    && __has_builtin(__builtin_ia32_packsswb256) \
+    && ((__has_builtin(__builtin_ia32_psubusb256) && __has_builtin(__builtin_ia32_psubusw256) \
+         && __has_builtin(__builtin_ia32_paddusw256)) \
+        || (__has_builtin(__builtin_elementwise_sub_sat) && __has_builtin(__builtin_elementwise_add_sat)))
 typedef short emd_v16hi __attribute__((__vector_size__(32)));
 typedef char emd_v32qi __attribute__((__vector_size__(32)));
+typedef uchar emd_v32qu __attribute__((__vector_size__(32)));
 typedef long emd_v4di __attribute__((__vector_size__(32)));
-typedef struct __attribute__((packed)) { emd_v32qi v; } emd_v32qi_u;
+typedef struct __attribute__((packed)) { emd_v32qu v; } emd_v32qu_u;
+#if __has_builtin(__builtin_ia32_psubusb256)
+#define EMD_SUBS_U8X32(a, b) ((emd_v32qu)__builtin_ia32_psubusb256((emd_v32qi)(a), (emd_v32qi)(b)))
+#define EMD_SUBS_U16(a, b) __builtin_astype(__builtin_ia32_psubusw256(__builtin_astype(a, emd_v16hi), \
+                                                                      __builtin_astype(b, emd_v16hi)), ushort16)
+#define EMD_ADDS_U16(a, b) __builtin_astype(__builtin_ia32_paddusw256(__builtin_astype(a, emd_v16hi), \
+                                                                      __builtin_astype(b, emd_v16hi)), ushort16)
+#else
+#define EMD_SUBS_U8X32(a, b) __builtin_elementwise_sub_sat((a), (b))
+#define EMD_SUBS_U16(a, b) __builtin_elementwise_sub_sat((a), (b))
+#define EMD_ADDS_U16(a, b) __builtin_elementwise_add_sat((a), (b))
+#endif
 /* bit l = (now[l] - then[l] > T) for 32 bytes: sat(sat(now - T) - then) != 0 (vpsubusb,
  * vpcmpeqb, vpmovmskb: 32 pixels per instruction, no widening to 16 bits) */
 inline uint exceeds32(__global const uchar *now, __global const uchar *then, uchar T)
 {
-    const emd_v32qi a = ((__global const emd_v32qi_u *)now)->v;
-    const emd_v32qi b = ((__global const emd_v32qi_u *)then)->v;
-    const emd_v32qi zero = {};
-    const emd_v32qi d = __builtin_ia32_psubusb256(__builtin_ia32_psubusb256(a, zero + (char)T), b);
+    const emd_v32qu a = ((__global const emd_v32qu_u *)now)->v;
+    const emd_v32qu b = ((__global const emd_v32qu_u *)then)->v;
+    const emd_v32qu zero = {};
+    const emd_v32qu d = EMD_SUBS_U8X32(EMD_SUBS_U8X32(a, zero + T), b);
     return ~(uint)__builtin_ia32_pmovmskb256((emd_v32qi)(d == zero));
 }
-inline ushort16 subs_u16(ushort16 a, ushort16 b)
-{
-    return __builtin_astype(__builtin_ia32_psubusw256(__builtin_astype(a, emd_v16hi),
-                                                      __builtin_astype(b, emd_v16hi)), ushort16);
-}
-inline ushort16 adds_u16(ushort16 a, ushort16 b)
-{
-    return __builtin_astype(__builtin_ia32_paddusw256(__builtin_astype(a, emd_v16hi),
-                                                      __builtin_astype(b, emd_v16hi)), ushort16);
-}
+inline ushort16 subs_u16(ushort16 a, ushort16 b) { return EMD_SUBS_U16(a, b); }
+inline ushort16 adds_u16(ushort16 a, ushort16 b) { return EMD_ADDS_U16(a, b); }
 /* bit l of the result = lane l of lo, bit 16 + l = lane l of hi (masks all-ones = true) */
 inline uint pack32(short16 lo, short16 hi)
 {

@@ -47,3 +47,19 @@ def test_demo_stops_on_its_own_after_the_set_time():
     text = out.getvalue()
     assert code == 0, text
     assert text.count("\n") >= 4 and "summary:" in text.splitlines()[-1]
+
+
+def test_demo_without_a_usable_opencl_device_says_why_and_runs_on_numpy(monkeypatch):
+    """Where no OpenCL device can run the kernels the demo still shows the appliance: it
+    prints the reason and the fix, then flies on the numpy reference."""
+    from io import StringIO
+
+    from firmware_py.demo import run_demo
+
+    monkeypatch.setenv("EMDFLOW_OPENCL_DEVICE", "no-such-device")
+    out = StringIO()
+    code = run_demo(frames=40, source="synthetic:circle=2,period=1", config_path=None, out=out, size=(96, 72))
+    text = out.getvalue()
+    assert code == 0, text
+    assert "OpenCL is not usable here" in text and "no-such-device" in text
+    assert "-> numpy engine ->" in text and "summary: 40 frames" in text.splitlines()[-1]

@@ -244,3 +244,69 @@ def test_dense_only_fields_cannot_be_summarised(backend):
                          (slope_expansion_rate, "slope_expansion_rate")):
             with pytest.raises(ValueError, match=rf"{name}\(\).*summary_evidence=False"):
                 fn(field)
+
+
+def test_the_first_device_that_builds_the_kernels_is_used(caplog):
+    """Two PoCLs side by side (the pip wheel's and the distribution's) are common, and a
+    PoCL whose LLVM is older than the processor cannot compile for it: the automatic
+    choice moves on to the next device, says so once, and fails only if none builds."""
+    from emdflow import opencl_backend
+
+    class Device:
+        def __init__(self, name):
+            self.name = name
+
+    old, new, other = Device("pthread-old-llvm"), Device("pthread-new-llvm"), Device("pthread-third")
+    attempts = []
+
+    def build(device):
+        attempts.append(device.name)
+        if device is old:
+            raise opencl_backend._build_failure(device.name, "error: unknown target CPU 'generic'")
+        return "program"
+
+    caplog.set_level("WARNING", logger="emdflow.opencl_backend")
+    opencl_backend._SKIPPED.discard(old.name)
+    for _ in range(2):
+        assert opencl_backend._first_buildable([old, new, other], build) == (new, "program")
+    assert attempts == ["pthread-old-llvm", "pthread-new-llvm"] * 2  # never the third
+    warnings = [r.getMessage() for r in caplog.records if "cannot build" in r.getMessage()]
+    assert len(warnings) == 1 and "pthread-old-llvm" in warnings[0] and "unknown target CPU" in warnings[0]
+
+    with pytest.raises(opencl_backend.KernelBuildError) as err:
+        opencl_backend._first_buildable([old], build)
+    assert "pthread-old-llvm" in str(err.value) and "apt-get install pocl-opencl-icd" in str(err.value)
+
+    def nothing_builds(device):
+        raise opencl_backend._build_failure(device.name, f"error: {device.name} says no")
+
+    with pytest.raises(opencl_backend.KernelBuildError, match="none of the 2 OpenCL devices") as err:
+        opencl_backend._first_buildable([new, other], nothing_builds)
+    assert "pthread-new-llvm says no" in str(err.value) and "pthread-third says no" in str(err.value)
+    assert "apt-get" not in str(err.value)  # the hint only where the log shows its cause
+
+
+def test_a_kernel_build_failure_names_the_device_and_is_not_retried():
+    """On the real PoCL device: a program the compiler rejects gives a KernelBuildError that
+    carries the compiler's message, and the failure is remembered per (device, source)."""
+    import pyopencl as cl
+
+    from emdflow import opencl_backend
+
+    device = opencl_backend._all_devices()[0]
+    ctx, _ = opencl_backend._context(device)
+    with pytest.raises(opencl_backend.KernelBuildError) as err:
+        opencl_backend._build(cl, ctx, device, "__kernel void broken(__global int *a) { a[0] = ; }")
+    assert device.name.strip() in str(err.value) and "error" in str(err.value)
+
+    class Layout:  # the program's compile-time header, made invalid
+        def header(self):
+            return "#error deliberately broken header\n"
+
+    before = len(opencl_backend._PROGRAMS)
+    with pytest.raises(opencl_backend.KernelBuildError) as first:
+        opencl_backend._program(ctx, device, Layout(), False)
+    with pytest.raises(opencl_backend.KernelBuildError) as second:
+        opencl_backend._program(ctx, device, Layout(), False)
+    assert second.value is first.value and "deliberately broken header" in str(first.value)
+    assert len(opencl_backend._PROGRAMS) == before + 1
