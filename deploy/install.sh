@@ -152,6 +152,21 @@ run mkdir -p "$PREFIX"
 run "$PYTHON" -m venv "$VENV"
 run "$VENV/bin/pip" install --upgrade pip
 run "$VENV/bin/pip" install "$SRC[$EXTRAS]"
+if [ "$OPENCL" = pip ]; then
+    # pip's PoCL (3.0, LLVM 14) cannot compile for a processor newer than its LLVM ("unknown
+    # target CPU 'generic'", e.g. AMD Zen 5). Debian's PoCL can; emdflow uses the first
+    # OpenCL device that builds its kernels, so it is added only where pip's fails.
+    PROBE='import numpy, emdflow; emdflow.FlowEstimator(64, 48).update(numpy.zeros((48, 64), numpy.uint8))'
+    printf '+ %s\n' "$VENV/bin/python -c '<build the engine's kernels once>'"
+    if [ "$DRY_RUN" = 0 ]; then
+        PROBE_CACHE="$(mktemp -d)"
+        if ! POCL_CACHE_DIR="$PROBE_CACHE" "$VENV/bin/python" -c "$PROBE" >/dev/null 2>&1; then
+            echo "   no OpenCL device builds the kernels with pip's PoCL: adding Debian's PoCL"
+            run apt-get install -y --no-install-recommends pocl-opencl-icd
+        fi
+        rm -rf "$PROBE_CACHE"
+    fi
+fi
 
 echo "== 5/7 configuration $CONF_DIR/emdflow.toml"
 run install -d -m 0755 "$CONF_DIR"

@@ -115,6 +115,11 @@ def test_install_script_rejects_bad_options():
     default = subprocess.run(["bash", str(DEPLOY / "install.sh"), "--dry-run"], capture_output=True, text=True,
                              timeout=60)
     assert default.returncode == 0 and f"{REPO}[pocl]" in default.stdout
+    # pip's PoCL is checked on this processor right after the install (Debian's is added
+    # where it cannot build the kernels); with Debian's or a vendor's PoCL there is no check
+    pip_install = default.stdout.index(f"{REPO}[pocl]")
+    assert default.stdout.index("<build the engine's kernels once>") > pip_install
+    assert "<build the engine's kernels once>" not in _dry_run("--opencl", "apt").stdout
 
 
 def test_udev_rules_are_well_formed():
