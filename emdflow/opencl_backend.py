@@ -518,7 +518,8 @@ class OpenCLEngine:
         self._k_integral.set_args(self.sat_buf, self.dsat_buf, zero, self.bright_buf, zero)
         self._k_states.set_args(self.sat_buf, self.dsat_buf, self.planes, self.p_buf, self.frame_buf, self.result,
                                 zero, zero, self.bright_buf)
-        self._k_evd.set_args(self.planes, self.result, self.debug_buf, self.sat_buf, self.p_buf, zero, zero)
+        self._k_evd.set_args(self.planes, self.result, self.debug_buf, self.sat_buf, self.p_buf, zero, zero,
+                             self.bright_buf)
         self._set_prefilter, self._set_integral, self._set_states, self._set_evd = (
             _int_arg_setter(k, i) for k, i in ((self._k_prefilter, 4), (self._k_integral, 2),
                                                (self._k_states, 6), (self._k_evd, 5)))

@@ -273,6 +273,7 @@ def summary_statistics(
     states_now: list[np.ndarray],
     theta_q: int | None = None,
     step_states: np.ndarray | None = None,
+    gains_q: dict | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame evidence for the summary (identical in both backends).
 
@@ -292,7 +293,10 @@ def summary_statistics(
       ``EngineParams.evidence_column_step(W)``-th column,
       ``axis`` 0 = horizontal / 1 = vertical, ``code = 2c + (1 if negative)``,
       ``orientation`` the bin of the gradient of the receptor image ``R_k`` at the middle
-      receptor ``B`` at ``t−D`` (spec §6), reads clamped to the valid receptor range;
+      receptor ``B`` at ``t−D`` (spec §6), reads clamped to the valid receptor range; the
+      class compares that gradient, brought to the brightness of ``t`` by the channel's
+      exposure gain ``gains_q[(k, D)] / 256`` (brightness compensation; 256 without), with
+      the threshold of ``t``: ``2 · gain_q · |g|₁ >= m · 2θ_q k²``;
     * the position histogram ``positions[axis, code, bin]`` of the same detections: ``bin``
       is ``x · POSITION_BINS // W`` for horizontal and ``y · POSITION_BINS // H`` for
       vertical detections (expansion and balance cues).
@@ -362,8 +366,14 @@ def summary_statistics(
             gys[sel] = R[np.clip(cy + 1, y0, y1), cx] - R[np.clip(cy - 1, y0, y1), cx]
         keep = (gxs != 0) | (gys != 0)
         bins = orientation_bins(gxs[keep], gys[keep])
-        # gradient-strength class: 512 |g|_1 >= m * 2 theta_q k^2 for each step m
-        strength = 512 * (np.abs(gxs) + np.abs(gys))[keep]
+        # gradient-strength class: 2 gain_q |g|_1 >= m * 2 theta_q k^2 for each step m; the
+        # gradient is of t - D and the threshold of t, so under an exposure drift the gain
+        # between them is taken out (as the states do), or the classes would drift with it
+        gain_q = np.full(ys.size, 256, np.int64)
+        if gains_q:
+            channel_gain = np.array([gains_q.get(ch, 256) for ch in channels], np.int64)
+            gain_q = channel_gain[chan]
+        strength = 2 * gain_q[keep] * (np.abs(gxs) + np.abs(gys))[keep]
         unit = 2 * q * ks[keep] ** 2
         cls = np.zeros(strength.size, np.int64)
         for m in params.class_steps:
@@ -414,11 +424,13 @@ class ReferenceEngine:
         self.states = []
         self.matches = {}
         receptors_mid = {}
+        gains_q = {}  # each channel's exposure gain over its delay, x256
         for c, (k, d) in enumerate(prm.channels):
             if len(self._p_history) > d:
                 p_then = self._p_history[-1 - d]
                 T = prm.box_threshold(k, self.theta_q)
-                ratio_q = prm.brightness_ratio_q(self._brightness[-1], self._brightness[-1 - d])
+                ratio_q = gains_q[(k, d)] = prm.brightness_ratio_q(self._brightness[-1],
+                                                                    self._brightness[-1 - d])
                 if ratio_q == 256:
                     s_now = ternary_states(receptor_change(p_now, p_then, k), T)
                 else:  # exposure gain: 256 R(t) against ratio_q R(t - D), threshold 256 T + 128
@@ -447,7 +459,8 @@ class ReferenceEngine:
         u_code = fuse_channels(pos[0], neg[0])
         v_code = fuse_channels(pos[1], neg[1])
         stats, hist, positions = summary_statistics(
-            prm, frame, p_now, u_code, v_code, receptors_mid, self.states, self.theta_q, step_states
+            prm, frame, p_now, u_code, v_code, receptors_mid, self.states, self.theta_q, step_states,
+            gains_q,
         )
         self.last_theta_q = self.theta_q
         self.theta_q = prm.next_threshold_q(int(stats[STAT_CONTRAST]), prm.contrast_samples(*frame.shape[::-1]))

@@ -102,7 +102,7 @@ __attribute__((always_inline)) inline void count_positions(__global int *positio
  * by popcount. The gradient of a scale-1 receptor image is the prefiltered image's own
  * (from the ring of P; the tables keep only the frames the larger scales need). */
 inline void bin_detections(__global int *positions, __global int *hist, __global const ushort *sat,
-                           __global const uchar *P, int t, int theta_q,
+                           __global const uchar *P, __global const uint *bright, int t, int theta_q,
                            int axis, int y, int i, uint b0, uint b1, uint b2, uint b3, uint bs,
                            bin_run *pos_run, bin_run *hist_run)
 {
@@ -120,6 +120,9 @@ inline void bin_detections(__global int *positions, __global int *hist, __global
         __global const ushort *S = sat + pos_mod(t - D, SAT_SLOTS) * SAT_SIZE;
 #if NCLASS > 1
         const int unit = 2 * theta_q * k * k;
+        /* the gradient is of t - D, the threshold of t: the channel's exposure gain over D
+         * (x256, integral.cl) brings the gradient to the brightness of t */
+        const int gain_q = COMPENSATE ? (int)bright[BRIGHT_RATIO + c] : 256;
 #endif
         const int row = (axis * 2 * NCH + 2 * c) * NCLASS * NBINS;
         while (m) {
@@ -146,8 +149,9 @@ inline void bin_detections(__global int *positions, __global int *hist, __global
             if (gx == 0 && gy == 0) continue;
             int cls = 0;
 #if NCLASS > 1
-            /* gradient-strength class (|g|_1 < 2^17, 8 theta_q k^2 < 2^23: no overflow) */
-            const int strength = 512 * ((gx < 0 ? -gx : gx) + (gy < 0 ? -gy : gy));
+            /* gradient-strength class (|g|_1 < 2^17 and gain_q <= 2^12, 8 theta_q k^2 < 2^23:
+             * no overflow) */
+            const int strength = 2 * gain_q * ((gx < 0 ? -gx : gx) + (gy < 0 ? -gy : gy));
             for (int s = 0; s < NCLASS - 1; s++) cls += strength >= CSTEP[s] * unit;
 #endif
             run_add(hist, hist_run, row + (negative * NCLASS + cls) * NBINS + orientation_bin(gx, gy), 1);
