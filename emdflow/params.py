@@ -51,7 +51,9 @@ MODELS = {
 #: Orientation bins over 180° used to summarise the gradient direction of detections.
 ORIENTATION_BINS = 64
 #: Gradient-strength classes of a detection: its class counts the steps ``m`` with
-#: ``|∇R_k|₁ ≥ (m / 2) · 2θk²``, i.e. ``512 (|gx| + |gy|) ≥ m · 2 θ_q k²`` (exact integers).
+#: ``|∇R_k|₁ ≥ (m / 2) · 2θk²``, i.e. ``512 (|gx| + |gy|) ≥ m · 2 θ_q k²`` (exact integers;
+#: with brightness compensation ``2 · gain_q`` instead of 512, the channel's exposure gain
+#: bringing the gradient of ``t − D`` to the brightness of ``t``, whose threshold it meets).
 #: ``|∇R_k|₁ / 2θk²`` is about the inverse of the displacement (px) that changes the receptor
 #: by θ k², so it says which delays and scales *can* fire at a given speed: the code mixture
 #: of a class depends much less on the texture than the mixture of all detections.
@@ -186,7 +188,7 @@ class EngineParams:
         direction error falls with the number of sampled detections and the engine's
         time grows with it: at 320×240, every row (1) instead of every 4th takes the paper
         model's median direction error on random flights from 2.37° to 2.06° and the
-        extended model's from 1.81° to 1.66°, for ~0.35 ms more per frame (README,
+        extended model's from 1.80° to 1.65°, for ~0.35 ms more per frame (README,
         "Evidence density"). The detections themselves (``u``, ``v``) do not change, nor
         does the calibration table, which does not depend on the sampling.
     summary_evidence : bool
