@@ -44,8 +44,8 @@ _INSTALL_HINT = (
 _UNKNOWN_CPU_HINT = (
     "this PoCL's compiler does not know this processor (its LLVM is older than the CPU): install "
     "a PoCL built with a newer LLVM, e.g. the distribution's (`apt-get install pocl-opencl-icd`; "
-    "emdflow uses the first device that builds its kernels), or choose another device with "
-    "EMDFLOW_OPENCL_DEVICE (see emdflow.opencl_devices())"
+    "left to choose, emdflow uses the first device that builds its kernels), or choose another "
+    "device with EMDFLOW_OPENCL_DEVICE (see emdflow.opencl_devices())"
 )
 _STAGES = ("common.cl", "prefilter.cl", "integral.cl", "states.cl", "evidence.cl", "evd.cl")
 _PROGRAMS: dict = {}
@@ -302,9 +302,11 @@ PORTABLE_ENV = "EMDFLOW_OPENCL_PORTABLE"
 
 
 class KernelBuildError(RuntimeError):
-    """A device's OpenCL compiler rejected the emdflow kernels (the message carries its log)."""
+    """A device cannot run the emdflow kernels: its OpenCL compiler rejected them (the
+    message carries the compiler's log), or no context could be made on it."""
 
 
+#: devices the automatic choice has warned about (once per device and process)
 _SKIPPED: set = set()
 
 
@@ -314,16 +316,20 @@ def _first_buildable(devices, build):
     raised together. Two PoCL installations side by side (the pip wheel's and the
     distribution's) are common, and only one of them may know the processor."""
     failures = []
-    for device in devices:
+    for n, device in enumerate(devices):
         try:
             return device, build(device)
         except KernelBuildError as exc:
             failures.append(exc)
-            name = device.name.strip()
-            if name not in _SKIPPED:  # once per device and process, not per engine
-                _SKIPPED.add(name)
+            if n + 1 == len(devices):
+                break
+            key = getattr(device, "int_ptr", None) or device.name
+            with _LOCK:
+                new = key not in _SKIPPED
+                _SKIPPED.add(key)
+            if new:
                 log.warning("OpenCL device %s cannot build the emdflow kernels; trying the next one (%s)",
-                            name, _first_error_line(str(exc)))
+                            device.name.strip(), _first_error_line(str(exc)))
     if len(failures) == 1:
         raise failures[0]
     raise KernelBuildError(f"none of the {len(failures)} OpenCL devices could build the emdflow kernels:\n"
@@ -341,10 +347,14 @@ def _device_with_program(device, layout: _Layout, debug: bool):
     """``(device, context, queue, program)``: the device chosen by the caller or
     EMDFLOW_OPENCL_DEVICE, else the first one (in ``list_devices()`` order) that builds the
     kernels."""
+    cl = _import_cl()
     choice = _device_choice(device)
 
     def build(dev):
-        ctx, queue = _context(dev)
+        try:
+            ctx, queue = _context(dev)
+        except cl.Error as exc:  # a device without a usable context: as unusable as a failed build
+            raise KernelBuildError(f"no OpenCL context on {dev.name.strip()}: {exc}") from exc
         return ctx, queue, _program(ctx, dev, layout, debug)
 
     chosen, (ctx, queue, program) = _first_buildable(
@@ -369,11 +379,22 @@ def _program(ctx, device, layout: _Layout, debug: bool):
             try:
                 prog = _build(cl, ctx, device, source)
             except KernelBuildError as exc:
-                prog = exc  # a compiler that failed once fails again: not every engine retries
+                # the same source fails the same way on the same compiler: later engines of
+                # this process get the message without building again
+                prog = _FailedBuild(str(exc))
             _PROGRAMS[key] = prog
-    if isinstance(prog, KernelBuildError):
-        raise prog
+    if isinstance(prog, _FailedBuild):
+        raise KernelBuildError(prog.message)  # a fresh error each time (its own traceback)
     return prog
+
+
+class _FailedBuild:
+    """A build that failed, remembered in ``_PROGRAMS`` by its message."""
+
+    __slots__ = ("message",)
+
+    def __init__(self, message: str):
+        self.message = message
 
 
 _KERNELS = ("prefilter_columns", "integral_rows", "ternary_states", "velocity_detectors")

@@ -94,6 +94,7 @@ def run_demo(*, frames: int | None = None, config_path: str | None = None, sourc
     from .sources.synthetic import SyntheticSource
 
     out = out or sys.stdout
+    master = slave = None
     try:
         config = load_config(config_path)
         config.set("source", "uri", source or (config.source.uri if config_path else DEMO_SOURCE))
@@ -111,9 +112,11 @@ def run_demo(*, frames: int | None = None, config_path: str | None = None, sourc
         config.validate()
     except ConfigError as exc:
         log.error("%s", exc)
+        for fd in (master, slave):
+            if fd is not None:
+                os.close(fd)
         return 2
-    if not backend and config.engine.backend == "opencl":
-        _fall_back_without_opencl(config, out)
+    fell_back = not backend and config.engine.backend == "opencl" and _fall_back_without_opencl(config, out)
     daemon = Daemon(config)
     truth_source = None
     if config.source.uri.startswith("synthetic:"):
@@ -171,24 +174,30 @@ def run_demo(*, frames: int | None = None, config_path: str | None = None, sourc
     if "error" in result:
         print(f"demo failed: {result['error']}", file=out, flush=True)
         return 1
-    return _summary(end - start, reader, daemon, truth_source, out, result.get("code", 1))
+    return _summary(end - start, reader, daemon, truth_source, out, result.get("code", 1), fell_back)
 
 
-def _fall_back_without_opencl(config, out) -> None:
+def _fall_back_without_opencl(config, out) -> bool:
     """The demo shows the whole appliance even where no OpenCL device can run the kernels:
     it says why and what fixes it, and runs the numpy reference (~20 ms per 320×240 frame
-    here) instead. The daemon itself does not fall back: a flight needs the speed, so there
-    an unusable backend stops the start (exit 1) with this same error."""
+    here) instead; returns True then. The daemon itself does not fall back: a flight needs
+    the speed, so there an unusable backend stops the start (exit 1) with this same error.
+    The demo's summary line says so again, since the demo is also the engine check after
+    an install."""
     import emdflow
 
     width, height = config.source.width or 320, config.source.height or 240
-    try:  # builds the kernels once; the daemon's engine then reuses the process's program
+    try:  # builds the kernels once; for the demo's flight the daemon's engine reuses them
         emdflow.FlowEstimator(width, height, backend="opencl", **config.engine.estimator_options())
-    except (RuntimeError, ValueError) as exc:  # no device, none that builds, or a wrong choice
+    except Exception as exc:  # noqa: BLE001 - whatever stops the OpenCL engine: say it, fly on numpy
         print(f"OpenCL is not usable here: {exc}\nThe demo runs on the numpy reference instead "
               "(slow; outside the demo emdflowd stops with this error, unless [engine] backend = "
               "\"numpy\" is set).", file=out, flush=True)
+        log.error("OpenCL is not usable here (%s): the demo runs on the numpy reference",
+                  str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
         config.set("engine", "backend", "numpy")
+        return True
+    return False
 
 
 def _truth_rate(daemon, truth_source) -> tuple[float, float]:
@@ -214,7 +223,7 @@ def _row(t, processed, msgs, reader, daemon, truth_source, latencies) -> str:
             f"{_fmt(fx, 9)},{_fmt(fy, 9)}  {_fmt(tx, 7)},{_fmt(ty, 7)}  {q:7d}")
 
 
-def _summary(elapsed, reader, daemon, truth_source, out, code) -> int:
+def _summary(elapsed, reader, daemon, truth_source, out, code, fell_back=False) -> int:
     from .daemon import _percentiles
 
     p50, p99 = _percentiles(daemon.latency_snapshot())
@@ -223,7 +232,8 @@ def _summary(elapsed, reader, daemon, truth_source, out, code) -> int:
     processed = daemon.stats.processed
     print(f"summary: {processed} frames in {elapsed:.1f} s ({processed / max(elapsed, 1e-9):.1f} fps), "
           f"received {flows} OPTICAL_FLOW + {hbs} HEARTBEAT ({reader.bytes} bytes, valid CRC), "
-          f"latency capture->serial p50 {p50 / 1000:.2f} ms p99 {p99 / 1000:.2f} ms",
+          f"latency capture->serial p50 {p50 / 1000:.2f} ms p99 {p99 / 1000:.2f} ms"
+          + ("; ON THE NUMPY REFERENCE: OpenCL is not usable here (see above)" if fell_back else ""),
           file=out, flush=True)
     if code != 0:
         return code

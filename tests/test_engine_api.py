@@ -276,6 +276,11 @@ def test_the_first_device_that_builds_the_kernels_is_used(caplog):
     with pytest.raises(opencl_backend.KernelBuildError) as err:
         opencl_backend._first_buildable([old], build)
     assert "pthread-old-llvm" in str(err.value) and "apt-get install pocl-opencl-icd" in str(err.value)
+    opencl_backend._SKIPPED.discard(old.name)
+    caplog.clear()
+    with pytest.raises(opencl_backend.KernelBuildError):  # a single (chosen) device: no "next one"
+        opencl_backend._first_buildable([old], build)
+    assert not [r for r in caplog.records if "trying the next one" in r.getMessage()]
 
     def nothing_builds(device):
         raise opencl_backend._build_failure(device.name, f"error: {device.name} says no")
@@ -299,14 +304,49 @@ def test_a_kernel_build_failure_names_the_device_and_is_not_retried():
         opencl_backend._build(cl, ctx, device, "__kernel void broken(__global int *a) { a[0] = ; }")
     assert device.name.strip() in str(err.value) and "error" in str(err.value)
 
+    token = os.urandom(4).hex()  # a source of its own, whatever ran before in this process
+
     class Layout:  # the program's compile-time header, made invalid
         def header(self):
-            return "#error deliberately broken header\n"
+            return f"#error deliberately broken header {token}\n"
 
     before = len(opencl_backend._PROGRAMS)
     with pytest.raises(opencl_backend.KernelBuildError) as first:
         opencl_backend._program(ctx, device, Layout(), False)
     with pytest.raises(opencl_backend.KernelBuildError) as second:
         opencl_backend._program(ctx, device, Layout(), False)
-    assert second.value is first.value and "deliberately broken header" in str(first.value)
-    assert len(opencl_backend._PROGRAMS) == before + 1
+    assert f"deliberately broken header {token}" in str(first.value)
+    assert str(second.value) == str(first.value) and second.value is not first.value
+    assert len(opencl_backend._PROGRAMS) == before + 1  # built (and failed) once
+
+
+def test_a_device_without_a_context_is_passed_over(monkeypatch, caplog):
+    """A device on which no OpenCL context can be made (a driver that lists a GPU it cannot
+    open) is skipped by the automatic choice like one whose compiler fails. The failure
+    itself cannot be made to happen here, so the first context request is made to fail."""
+    import pyopencl as cl
+
+    from emdflow import opencl_backend
+
+    device = emdflow.FlowEstimator(64, 48)._engine.device
+    calls = []
+    real_context = opencl_backend._context
+
+    def first_fails(dev):
+        calls.append(dev)
+        if len(calls) == 1:
+            raise cl.LogicError("clCreateContext failed: DEVICE_NOT_AVAILABLE")
+        return real_context(dev)
+
+    monkeypatch.setattr(opencl_backend, "_all_devices", lambda: [device, device])
+    monkeypatch.setattr(opencl_backend, "_context", first_fails)
+    monkeypatch.delenv("EMDFLOW_OPENCL_DEVICE", raising=False)
+    opencl_backend._SKIPPED.discard(device.int_ptr)
+    caplog.set_level("WARNING", logger="emdflow.opencl_backend")
+    est = emdflow.FlowEstimator(64, 48)
+    assert est._engine.device == device and len(calls) == 2
+    assert any("DEVICE_NOT_AVAILABLE" in r.getMessage() for r in caplog.records)
+    monkeypatch.setattr(opencl_backend, "_all_devices", lambda: [device])
+    calls.clear()
+    with pytest.raises(opencl_backend.KernelBuildError, match="no OpenCL context on .*DEVICE_NOT_AVAILABLE"):
+        emdflow.FlowEstimator(64, 48)
