@@ -62,5 +62,6 @@ def test_demo_without_a_usable_opencl_device_says_why_and_runs_on_numpy(monkeypa
     text = out.getvalue()
     assert code == 0, text
     assert "OpenCL is not usable here" in text and "no-such-device" in text
+    assert "every k-th frame, evenly spaced" in text  # the slow engine gets a steady subset
     assert "-> numpy engine ->" in text and "summary: 40 frames" in text.splitlines()[-1]
     assert "ON THE NUMPY REFERENCE" in text.splitlines()[-1]  # the engine check must not pass quietly
