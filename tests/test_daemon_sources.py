@@ -16,7 +16,7 @@ from firmware_py.angular import focal_length_px_from_fov
 from firmware_py.sources import Frame, SourceError, host_us, make_source, open_source, parse_uri
 from firmware_py.sources.v4l2 import V4L2Source, raw_to_gray
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # shared helpers
-from daemon_util import flight_frames, write_video  # noqa: E402
+from daemon_util import flight_frames, run_isolated_from_native_crashes, write_video  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -75,8 +75,10 @@ def test_video_source_missing_file_named(tmp_path):
         open_source(f"video:{bad}")
 
 
-def test_depthai_replay_same_frames_as_file(clip):
+def test_depthai_replay_same_frames_as_file(clip, request):
     pytest.importorskip("depthai")
+    if not run_isolated_from_native_crashes(request):
+        return
     path, frames = clip
     source = open_source(f"depthai-replay:{path}")
     try:
@@ -92,8 +94,10 @@ def test_depthai_replay_same_frames_as_file(clip):
     assert [f.index for f in got] == list(range(len(got)))
 
 
-def test_depthai_replay_host_imagemanip_resizes(clip):
+def test_depthai_replay_host_imagemanip_resizes(clip, request):
     pytest.importorskip("depthai")
+    if not run_isolated_from_native_crashes(request):
+        return
     path, frames = clip
     source = open_source(f"depthai-replay:{path}", width=80, height=60)
     try:
