@@ -242,7 +242,8 @@ def run_isolated_from_native_crashes(request, *, timeout: float = 120.0, attempt
     crashes = []
     for _ in range(attempts):
         try:
-            result = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+            # -P: the installed package (CI's), not a checkout in the working directory
+            result = subprocess.run([sys.executable, "-P", "-m", "pytest", "-q", "-p", "no:cacheprovider",
                                      request.node.nodeid], cwd=str(request.config.rootpath), env=env,
                                     capture_output=True, text=True, timeout=timeout)
         except subprocess.TimeoutExpired:

@@ -77,7 +77,7 @@ def test_video_source_missing_file_named(tmp_path):
 
 def test_depthai_replay_same_frames_as_file(clip, request):
     pytest.importorskip("depthai")
-    if not run_isolated_from_native_crashes(request):
+    if not run_isolated_from_native_crashes(request, timeout=30.0):
         return
     path, frames = clip
     source = open_source(f"depthai-replay:{path}")
@@ -96,7 +96,7 @@ def test_depthai_replay_same_frames_as_file(clip, request):
 
 def test_depthai_replay_host_imagemanip_resizes(clip, request):
     pytest.importorskip("depthai")
-    if not run_isolated_from_native_crashes(request):
+    if not run_isolated_from_native_crashes(request, timeout=30.0):
         return
     path, frames = clip
     source = open_source(f"depthai-replay:{path}", width=80, height=60)
