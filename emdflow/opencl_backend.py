@@ -321,15 +321,14 @@ def _first_buildable(devices, build):
             return device, build(device)
         except KernelBuildError as exc:
             failures.append(exc)
-            if n + 1 == len(devices):
-                break
+        if n + 1 < len(devices):  # a next one to try: say why this one is passed over
             key = getattr(device, "int_ptr", None) or device.name
             with _LOCK:
                 new = key not in _SKIPPED
                 _SKIPPED.add(key)
             if new:
                 log.warning("OpenCL device %s cannot build the emdflow kernels; trying the next one (%s)",
-                            device.name.strip(), _first_error_line(str(exc)))
+                            device.name.strip(), _first_error_line(str(failures[-1])))
     if len(failures) == 1:
         raise failures[0]
     raise KernelBuildError(f"none of the {len(failures)} OpenCL devices could build the emdflow kernels:\n"
@@ -380,21 +379,13 @@ def _program(ctx, device, layout: _Layout, debug: bool):
                 prog = _build(cl, ctx, device, source)
             except KernelBuildError as exc:
                 # the same source fails the same way on the same compiler: later engines of
-                # this process get the message without building again
-                prog = _FailedBuild(str(exc))
+                # this process get its message (a str in place of the program) without
+                # building again
+                prog = str(exc)
             _PROGRAMS[key] = prog
-    if isinstance(prog, _FailedBuild):
-        raise KernelBuildError(prog.message)  # a fresh error each time (its own traceback)
+    if isinstance(prog, str):
+        raise KernelBuildError(prog)  # a fresh error each time (its own traceback)
     return prog
-
-
-class _FailedBuild:
-    """A build that failed, remembered in ``_PROGRAMS`` by its message."""
-
-    __slots__ = ("message",)
-
-    def __init__(self, message: str):
-        self.message = message
 
 
 _KERNELS = ("prefilter_columns", "integral_rows", "ternary_states", "velocity_detectors")

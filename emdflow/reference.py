@@ -334,6 +334,7 @@ def summary_statistics(
     positions = np.zeros((2, 2 * len(channels), POSITION_BINS), np.int64)
 
     hist = np.zeros((2, 2 * len(channels), params.histogram_bins), np.int64)
+    channel_gain = np.array([(gains_q or {}).get(ch, 256) for ch in channels], np.int64)
     for axis, code in enumerate((u_code, v_code)):
         step = params.evidence_row_step_for(H)
         xstep = params.evidence_column_step(W)
@@ -369,11 +370,7 @@ def summary_statistics(
         # gradient-strength class: 2 gain_q |g|_1 >= m * 2 theta_q k^2 for each step m; the
         # gradient is of t - D and the threshold of t, so under an exposure drift the gain
         # between them is taken out (as the states do), or the classes would drift with it
-        gain_q = np.full(ys.size, 256, np.int64)
-        if gains_q:
-            channel_gain = np.array([gains_q.get(ch, 256) for ch in channels], np.int64)
-            gain_q = channel_gain[chan]
-        strength = 2 * gain_q[keep] * (np.abs(gxs) + np.abs(gys))[keep]
+        strength = 2 * channel_gain[chan[keep]] * (np.abs(gxs) + np.abs(gys))[keep]
         unit = 2 * q * ks[keep] ** 2
         cls = np.zeros(strength.size, np.int64)
         for m in params.class_steps:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -255,9 +256,5 @@ def run_isolated_from_native_crashes(request, *, timeout: float = 120.0, attempt
             crashes.append(f"killed by signal {-result.returncode}" if result.returncode < 0
                            else result.stderr.strip().splitlines()[-1])
             continue
-        import pytest
-
         pytest.fail(f"the isolated run failed:\n{result.stdout[-4000:]}\n{result.stderr[-2000:]}")
-    import pytest
-
     pytest.fail(f"DepthAI crashed or hung in all {attempts} isolated runs: {crashes}")
