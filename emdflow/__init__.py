@@ -30,7 +30,11 @@ __all__ = [
 
 
 def opencl_devices():
-    """List usable OpenCL devices as ``[(index, "platform: device"), ...]``.
+    """List the OpenCL devices as ``[(index, "platform: device"), ...]``.
+
+    A listed device may still be unable to build the kernels (a PoCL whose compiler does
+    not know the processor): the automatic choice passes over those, and
+    :attr:`FlowEstimator.device` names the device an estimator runs on.
 
     Raises RuntimeError (with install instructions) when pyopencl or an OpenCL platform
     is missing.

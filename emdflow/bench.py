@@ -269,12 +269,14 @@ def _summary_time(width: int, height: int, clip, backend_kwargs, frames: int = 1
     return statistics.median(times[5:])
 
 
-def _environment() -> str:
+def _environment(width: int, height: int, kwargs: dict) -> str:
+    """Device, thread pinning, cores and Python of the run. The device is the one the
+    OpenCL engine of the first size runs on (its program is the benchmark's own)."""
     import platform
 
-    from . import opencl_devices
+    from . import FlowEstimator
 
-    device = opencl_devices()[0][1] if opencl_devices() else "none"
+    device = FlowEstimator(width, height, backend="opencl", **kwargs).device
     affinity = os.environ.get("POCL_AFFINITY", "unset (0)")
     return (
         f"device: {device}; POCL_AFFINITY={affinity}; cores: {os.cpu_count()}; "
@@ -396,7 +398,12 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     kwargs = _check_arguments(parser, args)
     sizes = args.sizes
-    print(f"# emdflow bench — {_environment()}; model: {args.model}"
+    try:  # no usable OpenCL device (or a device choice that names none): one line, exit 1
+        environment = _environment(*sizes[0], kwargs)
+    except (RuntimeError, ValueError) as exc:
+        print(f"emdflow bench: error: OpenCL engine: {exc}", file=sys.stderr)
+        return 1
+    print(f"# emdflow bench — {environment}; model: {args.model}"
           + (f", delays {kwargs['delays']}" if args.delays is not None else "")
           + (f", evidence every {args.evidence_row_step} row(s)" if args.evidence_row_step else "")
           + f"; flight over {args.texture}",

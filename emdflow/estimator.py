@@ -221,6 +221,14 @@ class FlowEstimator:
         self._last_step = None
 
     @property
+    def device(self) -> str | None:
+        """The OpenCL device the engine runs on, ``"platform: device"`` as
+        :func:`emdflow.opencl_devices` names it (the automatic choice may pass over devices
+        that cannot build the kernels); None on the numpy backend."""
+        dev = getattr(self._engine, "device", None)
+        return None if dev is None else f"{dev.platform.name.strip()}: {dev.name.strip()}"
+
+    @property
     def frames_seen(self) -> int:
         """Frames processed since construction or the last reset."""
         return self._frames

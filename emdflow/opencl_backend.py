@@ -93,7 +93,8 @@ def _all_devices():
 
 
 def list_devices() -> list[tuple[int, str]]:
-    """Usable OpenCL devices as ``[(index, "platform: device"), ...]``."""
+    """The OpenCL devices as ``[(index, "platform: device"), ...]`` (whether or not they
+    can build the kernels: see :func:`_first_buildable`)."""
     return [(i, f"{d.platform.name.strip()}: {d.name.strip()}") for i, d in enumerate(_all_devices())]
 
 

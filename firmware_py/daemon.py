@@ -530,8 +530,8 @@ class Daemon:
         for _ in range(2):
             _summarize(self.estimator.update(blank))
         self.estimator.reset()
-        log.info("engine %s %dx%d ready in %.2f s", self.config.engine.backend, self.width, self.height,
-                 time.monotonic() - t0)
+        log.info("engine %s %dx%d ready in %.2f s%s", self.config.engine.backend, self.width, self.height,
+                 time.monotonic() - t0, _on_device(self.estimator))
 
     # -- the loop ---------------------------------------------------------------------
     def stop(self) -> None:
@@ -779,6 +779,12 @@ def _link_stats(st) -> str:
     by_type = ",".join(f"{name} {count}" for name, count in sorted(sent.items())) or "none"
     return (f"sent {by_type}; dropped {st.get('dropped_messages', 0)} blind {st.get('blind_reports', 0)} "
             f"port {'open' if st.get('port_open') else 'CLOSED'} reopens {st.get('reopen_count', 0)}")
+
+
+def _on_device(estimator) -> str:
+    """" on <OpenCL device>" for the start-up log (estimators from a factory may not say)."""
+    device = getattr(estimator, "device", None)
+    return f" on {device}" if device else ""
 
 
 def _summarize(field):

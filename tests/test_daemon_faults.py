@@ -3,6 +3,7 @@ signals and systemd notifications — each handled with a clear log line and no 
 
 from __future__ import annotations
 
+import logging
 import os
 import sys
 import shutil
@@ -73,6 +74,7 @@ def _run_inprocess(tmp_path, factory, frames):
 
 
 def test_source_that_raises_is_reopened_and_link_reports_blind(tmp_path, caplog):
+    caplog.set_level(logging.INFO, logger="emdflowd")
     made = []
 
     def factory():
@@ -85,6 +87,8 @@ def test_source_that_raises_is_reopened_and_link_reports_blind(tmp_path, caplog)
     assert daemon.stats.processed == 40 and daemon.stats.reopens == 1 and len(made) == 2
     assert "synthetic:u=2,v=1: read failed (USB camera unplugged); reopening in 0.2 s" in caplog.text
     assert "camera blind" in caplog.text
+    if engine_backend() == "opencl":  # the start-up line names the device the engine chose
+        assert "96x72 ready in" in caplog.text and f" on {daemon.estimator.device}\n" in caplog.text
     qualities = [m.quality for m in msgs if m.get_type() == "OPTICAL_FLOW"]
     first_blind = qualities.index(0, 5)                    # quality 0 while unplugged ...
     assert any(q > 0 for q in qualities[first_blind:])     # ... and good flow again after

@@ -190,7 +190,8 @@ def test_opencl_devices_and_device_choice(monkeypatch):
     devices = emdflow.opencl_devices()
     assert devices and devices[0][0] == 0 and ":" in devices[0][1]
     est = emdflow.FlowEstimator(64, 48, device=0)
-    assert est._engine.device is not None
+    assert est.device == devices[0][1]  # the device it runs on, named as the list names it
+    assert emdflow.FlowEstimator(64, 48, backend="numpy").device is None
     monkeypatch.setenv("EMDFLOW_OPENCL_DEVICE", "no-such-device")
     with pytest.raises(ValueError, match="no-such-device"):
         emdflow.FlowEstimator(64, 48)

@@ -289,6 +289,22 @@ def test_bench_stages_times_every_command_of_a_frame(capsys):
     assert line.startswith("64x48") and all(name in line for name in (*OpenCLEngine.STAGES, "summary"))
 
 
+def test_bench_names_the_device_its_engine_runs_on(monkeypatch, capsys):
+    """The header names the device the engine chose (the first one that builds, not simply
+    the first one listed); a device choice that names none is one error line, exit 1."""
+    pytest.importorskip("pyopencl")
+    from emdflow import FlowEstimator, bench
+
+    assert bench.main(["--stages", "--sizes", "48x40"]) == 0
+    header = capsys.readouterr().out.splitlines()[0]
+    assert f"device: {FlowEstimator(48, 40).device};" in header
+    monkeypatch.setenv("EMDFLOW_OPENCL_DEVICE", "no-such-device")
+    assert bench.main(["--stages", "--sizes", "48x40"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("emdflow bench: error: OpenCL engine:") and "no-such-device" in err
+    assert len(err.splitlines()) == 1
+
+
 def test_bench_ratios_of_medians_and_per_round(monkeypatch):
     """The table's DIS / OpenCL ratios: of the medians, and the median of each round's
     own ratio. A clock where DIS takes 3x the engine's time (4x the dense-only engine's),

@@ -85,7 +85,7 @@ def test_bench_bad_arguments_are_usage_errors_before_the_run(capsys, monkeypatch
     """Each of these used to end in a traceback (some after the whole run)."""
     from emdflow import bench
 
-    monkeypatch.setattr(bench, "_environment", lambda: "test")  # (no OpenCL probe needed)
+    monkeypatch.setattr(bench, "_environment", lambda *args: "test")  # (no OpenCL probe needed)
     _usage_error(capsys, lambda: main(["bench", *SMALL_BENCH, *extra]), *names)
 
 
@@ -96,7 +96,7 @@ def test_bench_output_paths_are_checked_before_the_run(tmp_path, capsys, monkeyp
         raise AssertionError("the benchmark ran before its output paths were checked")
 
     monkeypatch.setattr(bench, "run_benchmark", no_run)
-    monkeypatch.setattr(bench, "_environment", lambda: "test")
+    monkeypatch.setattr(bench, "_environment", lambda *args: "test")
     for option, path, why in (("--plot", tmp_path / "b.txt", "cannot write .txt"),
                               ("--plot", tmp_path / "b", "no file ending"),
                               ("--plot", tmp_path, "is a folder"),
@@ -111,7 +111,7 @@ def test_bench_runtime_errors_go_through_the_commands_handlers(monkeypatch, caps
     from emdflow import bench
 
     fake = {(32, 24): {name: 1.0 for name in ("opencl", "opencl-dense", "opencl+summary", "numpy", "dis", "blur")}}
-    monkeypatch.setattr(bench, "_environment", lambda: "test")
+    monkeypatch.setattr(bench, "_environment", lambda *args: "test")
     monkeypatch.setattr(bench, "run_benchmark", lambda **kw: fake)
     if Path("/dev/full").exists():
         assert main(["bench", *SMALL_BENCH, "--json", "/dev/full"]) == 2
