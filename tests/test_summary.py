@@ -586,3 +586,24 @@ def test_calibration_flights_take_the_evidence_density(tmp_path):
             counts.append((d["flow"].copy(), int(d["hist"].sum())))
     assert np.array_equal(counts[0][0], counts[1][0])
     assert counts[1][1] > 2 * counts[0][1]
+
+
+def test_evaluation_flights_take_the_ground(monkeypatch, tmp_path, capsys):
+    """``calibrate_summary evaluate --textures A,B`` flies over those grounds (the
+    calibration's own, to see how well a table fits the ground it was measured on): the
+    stored frames name them, the label says so, and an unknown ground is refused with a
+    message that names the option."""
+    from emdflow.tools import calibrate_summary as cs
+
+    monkeypatch.setitem(cs.MODEL_EVALUATION_SPEEDS, "paper", (3,))
+    out = tmp_path / "flights.npz"
+    cs.main(["evaluate", "--size", "64x48", "--frames", "1", "--textures", "moon,coffee",
+             "--save", str(out)])
+    with np.load(out) as d:
+        assert sorted(set(d["texture"].tolist())) == ["coffee", "moon"]
+        assert len(d["flow"]) == 8 * 2
+    assert "over moon,coffee" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        cs.main(["evaluate", "--textures", "moon,no-such-ground"])
+    err = capsys.readouterr().err
+    assert "--textures" in err and "no-such-ground" in err

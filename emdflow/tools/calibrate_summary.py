@@ -546,27 +546,29 @@ MODEL_EVALUATION_SPEEDS = {"paper": EVALUATION_SPEEDS,
 RANDOM_DIRECTIONS_SEED = 4242
 
 
-def _directions(offset, random_set, speeds=EVALUATION_SPEEDS):
+def _directions(offset, random_set, speeds=EVALUATION_SPEEDS, textures=EVALUATION_TEXTURES):
     """The 8 flight directions (radians) of one (speed, texture) cell, as a function of
     the cell's index (the random set draws fresh directions per cell)."""
     if not random_set:
         return lambda cell: [a * math.pi / 4 + offset for a in range(8)]
     rng = np.random.default_rng(RANDOM_DIRECTIONS_SEED)
-    table = rng.uniform(0.0, 2.0 * math.pi, (len(speeds) * len(EVALUATION_TEXTURES), 8))
+    table = rng.uniform(0.0, 2.0 * math.pi, (len(speeds) * len(textures), 8))
     return lambda cell: list(table[cell])
 
 
 def render_evaluation(offset: float = 0.0, random_set: bool = False, frames: int = 6,
                       backend: str = "opencl", width=320, height=240, model: str = "paper",
                       contrast: float = 1.0, drift: float = 0.0, evidence_row_step: int = 0,
-                      noise: float = 2.0):
+                      noise: float = 2.0, textures=EVALUATION_TEXTURES):
     """Flights over the evaluation textures: the model's speeds (9 for the paper's model,
     10 from 0.25 px/frame for the extended one) × 4 textures × 8 directions (multiples of
     45° plus ``offset`` radians, or random directions), sensor noise σ = ``noise`` gray
     levels (2 unless told; the calibration flights draw it from 1–3), scene ``contrast``
     and an exposure ramp of ``drift`` (relative) across each whole flight, ``frames``
     ready frames each; ``evidence_row_step`` as in :class:`emdflow.EngineParams` (0:
-    automatic). Returns the histograms, statistics and true flows."""
+    automatic); ``textures`` the grounds flown over (the evaluation set unless told: the
+    calibration set measures how well a table fits its own ground). Returns the
+    histograms, statistics and true flows."""
     _checked_noise(noise, noise, f"noise={noise!r}")
     from emdflow import FlowEstimator
     from emdflow.synthetic import CameraFlight, load_texture
@@ -575,11 +577,11 @@ def render_evaluation(offset: float = 0.0, random_set: bool = False, frames: int
                         evidence_row_step=evidence_row_step)
     warm = est.params.history_frames
     speeds = MODEL_EVALUATION_SPEEDS[model]
-    directions = _directions(offset, random_set, speeds)
+    directions = _directions(offset, random_set, speeds, textures)
     hists, stats, flows, names = [], [], [], []
     cell = 0
     for sp in speeds:
-        for texture in EVALUATION_TEXTURES:
+        for texture in textures:
             for a, th in enumerate(directions(cell)):
                 fu, fv = sp * math.cos(th), sp * math.sin(th)
                 # the path of the frames the one-frame templates see (from frame warm − 3;
@@ -710,9 +712,10 @@ def _print_flight_bias(sums, flows, per_flight: int, out=print):
 def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: str = "opencl",
              save: str | None = None, data: str | None = None, model: str = "paper",
              contrast: float = 1.0, drift: float = 0.0, options=None, evidence_row_step: int = 0,
-             width: int = 320, height: int = 240, noise: float = 2.0):
-    """Render (or load with ``data``) the evaluation flights (``width`` × ``height`` frames)
-    and :func:`score` them."""
+             width: int = 320, height: int = 240, noise: float = 2.0,
+             textures=EVALUATION_TEXTURES):
+    """Render (or load with ``data``) the evaluation flights (``width`` × ``height`` frames,
+    over ``textures``) and :func:`score` them."""
     if data:
         with np.load(data) as z:
             flights = {k: z[k] for k in z.files}
@@ -720,7 +723,8 @@ def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: 
     else:
         flights = render_evaluation(offset, random_set, frames, backend, width, height, model=model,
                                     contrast=contrast, drift=drift,
-                                    evidence_row_step=evidence_row_step, noise=noise)
+                                    evidence_row_step=evidence_row_step, noise=noise,
+                                    textures=textures)
         label = "random directions" if random_set else f"offset {offset} rad"
         if (width, height) != (320, 240):
             label += f", {width}x{height}"
@@ -733,6 +737,8 @@ def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: 
             label += f", noise sigma {noise:g}"
         if evidence_row_step:
             label += f", evidence every {evidence_row_step} row(s)"
+        if tuple(textures) != EVALUATION_TEXTURES:
+            label += f", over {','.join(textures)}"
         if save:
             np.savez_compressed(save, **flights)
     print(f"{label}: {len(flights['flow'])} frames")
@@ -794,6 +800,11 @@ def main(argv=None):
     e.add_argument("--noise", type=float, default=2.0,
                    help="sensor noise of the flights, standard deviation in gray levels (default "
                         "2; the calibration flights draw it from 1-3)")
+    e.add_argument("--textures", default=",".join(EVALUATION_TEXTURES),
+                   help="comma-separated grounds of the flights (default: the evaluation set, "
+                        "which the calibration never saw; the calibration set "
+                        f"{','.join(CALIBRATION_TEXTURES)} measures how well a table fits "
+                        "its own ground)")
     a = ap.parse_args(argv)
     if a.cmd == "collect":
         bad = set(a.textures.split(",")) & set(EVALUATION_TEXTURES)
@@ -830,8 +841,16 @@ def main(argv=None):
             _checked_noise(a.noise, a.noise, f"--noise {a.noise:g}")
         except ValueError as exc:
             ap.error(str(exc))
+        textures = tuple(a.textures.split(","))
+        from emdflow.synthetic import load_texture
+
+        for texture in textures:
+            try:
+                load_texture(texture)
+            except ValueError as exc:
+                ap.error(f"--textures: {exc}")
         evaluate(a.offset, a.random, a.frames, a.backend, a.save, a.data, a.model, a.contrast,
-                 a.drift, options, a.evidence_row_step, width, height, a.noise)
+                 a.drift, options, a.evidence_row_step, width, height, a.noise, textures)
 
 
 if __name__ == "__main__":
