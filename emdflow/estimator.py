@@ -91,8 +91,9 @@ class FlowEstimator:
         time at 640×480; those functions then refuse the field (ValueError).
     device : str or int, optional
         OpenCL device: an index into :func:`emdflow.opencl_devices` or a substring of the
-        platform/device name. Default: the ``EMDFLOW_OPENCL_DEVICE`` environment variable,
-        else the first device found.
+        platform/device name (OpenCL backend only). Default: the ``EMDFLOW_OPENCL_DEVICE``
+        environment variable, else the first device found that builds the kernels
+        (:attr:`device` then names it).
 
     Raises
     ------
@@ -160,6 +161,9 @@ class FlowEstimator:
             summary_evidence=summary_evidence,
         )
         if backend == "numpy":
+            if device is not None:  # (a choice that would silently do nothing)
+                raise ValueError(f"device={device!r}: only the OpenCL backend runs on a device, "
+                                 "not backend='numpy'")
             self._engine = ReferenceEngine(self.width, self.height, self.params)
         else:
             from .opencl_backend import OpenCLEngine

@@ -192,6 +192,8 @@ def test_opencl_devices_and_device_choice(monkeypatch):
     est = emdflow.FlowEstimator(64, 48, device=0)
     assert est.device == devices[0][1]  # the device it runs on, named as the list names it
     assert emdflow.FlowEstimator(64, 48, backend="numpy").device is None
+    with pytest.raises(ValueError, match="only the OpenCL backend"):
+        emdflow.FlowEstimator(64, 48, backend="numpy", device=0)
     monkeypatch.setenv("EMDFLOW_OPENCL_DEVICE", "no-such-device")
     with pytest.raises(ValueError, match="no-such-device"):
         emdflow.FlowEstimator(64, 48)
