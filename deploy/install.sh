@@ -156,18 +156,19 @@ if [ "$OPENCL" = pip ]; then
     # pip's PoCL (3.0, LLVM 14) cannot compile for a processor newer than its LLVM ("unknown
     # target CPU 'generic'", e.g. AMD Zen 5). Debian's PoCL can; emdflow uses the first
     # OpenCL device that builds its kernels, so it is added only where pip's fails.
-    # (python -I: the installed package, not a checkout in the current directory)
-    PROBE='import numpy, emdflow; emdflow.FlowEstimator(64, 48).update(numpy.zeros((48, 64), numpy.uint8))'
-    printf '+ %s\n' "$VENV/bin/python -I -c '<build the engine's kernels once>'"
+    # (`emdflow devices` builds the kernels and runs a frame on every device; exit 1: none works)
+    printf '+ %s\n' "$VENV/bin/emdflow devices"
     if [ "$DRY_RUN" = 0 ]; then
         PROBE_CACHE="$(mktemp -d)"
-        if ! PROBE_OUT=$(POCL_CACHE_DIR="$PROBE_CACHE" "$VENV/bin/python" -I -c "$PROBE" 2>&1); then
-            WHY=$(printf '%s\n' "$PROBE_OUT" | grep -m1 'error:' || printf '%s\n' "$PROBE_OUT" | tail -n1)
-            echo "   no OpenCL device builds the kernels with pip's PoCL ($WHY): adding Debian's PoCL"
+        if ! PROBE_OUT=$(POCL_CACHE_DIR="$PROBE_CACHE" "$VENV/bin/emdflow" devices 2>&1); then
+            WHY=$(printf '%s\n' "$PROBE_OUT" | tail -n1)
+            echo "   no OpenCL device runs the engine with pip's PoCL ($WHY): adding Debian's PoCL"
             run apt-get install -y --no-install-recommends pocl-opencl-icd
-            if ! POCL_CACHE_DIR="$PROBE_CACHE" "$VENV/bin/python" -I -c "$PROBE" >/dev/null 2>&1; then
-                echo "   warning: still no OpenCL device builds the kernels; 'emdflowd --demo' (step 2 below) says why"
+            if ! POCL_CACHE_DIR="$PROBE_CACHE" "$VENV/bin/emdflow" devices; then
+                echo "   warning: still no OpenCL device runs the engine (above); 'emdflowd --demo' (step 2 below) says the same"
             fi
+        else
+            printf '%s\n' "$PROBE_OUT" | sed 's/^/   /'
         fi
         rm -rf "$PROBE_CACHE"
     fi

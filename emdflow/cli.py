@@ -6,6 +6,7 @@ Subcommands::
     emdflow frames INPUT               # CSV: frame, t, flow_x, flow_y[, rate_x, rate_y], quality
     emdflow eval [--quick]             # camera flights with exact truth, engine vs OpenCV DIS
     emdflow bench ...                  # the benchmark (emdflow.bench)
+    emdflow devices                    # which OpenCL devices run the engine, which one it takes
 
 Errors are one line on stderr naming the offending file; exit code 2 for bad input or
 usage, 1 when the engine cannot start (e.g. no OpenCL platform), 130 on Ctrl-C.
@@ -152,7 +153,7 @@ def run_flow(args) -> int:
 def build_parser() -> argparse.ArgumentParser:
     """The argparse parser of the ``emdflow`` command."""
     from emdflow import __version__
-    from emdflow.tools import evaluate, frames
+    from emdflow.tools import devices, evaluate, frames
 
     parser = argparse.ArgumentParser(
         prog="emdflow",
@@ -180,6 +181,12 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_arguments(p)
     p.set_defaults(run=evaluate.run)
     sub.add_parser("bench", help="benchmark (see 'emdflow bench -h')", add_help=False)
+    p = sub.add_parser("devices", help="which OpenCL devices run the engine, and which one it takes",
+                       description="Build the kernels and run one frame on every OpenCL device; say "
+                                   "which work (or why not) and which one the engine takes when left "
+                                   "to choose. Exit 0 when the engine can run, 1 when it cannot.")
+    devices.add_arguments(p)
+    p.set_defaults(run=devices.run)
     return parser
 
 

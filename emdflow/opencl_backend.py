@@ -45,7 +45,7 @@ _UNKNOWN_CPU_HINT = (
     "this PoCL's compiler does not know this processor (its LLVM is older than the CPU): install "
     "a PoCL built with a newer LLVM, e.g. the distribution's (`apt-get install pocl-opencl-icd`; "
     "left to choose, emdflow uses the first device that builds its kernels), or choose another "
-    "device with EMDFLOW_OPENCL_DEVICE (see emdflow.opencl_devices())"
+    "device with EMDFLOW_OPENCL_DEVICE (`emdflow devices` shows which ones work)"
 )
 _STAGES = ("common.cl", "prefilter.cl", "integral.cl", "states.cl", "evidence.cl", "evd.cl")
 _PROGRAMS: dict = {}

@@ -118,8 +118,8 @@ def test_install_script_rejects_bad_options():
     # pip's PoCL is checked on this processor right after the install (Debian's is added
     # where it cannot build the kernels); with Debian's or a vendor's PoCL there is no check
     pip_install = default.stdout.index(f"{REPO}[pocl]")
-    assert default.stdout.index("<build the engine's kernels once>") > pip_install
-    assert "<build the engine's kernels once>" not in _dry_run("--opencl", "apt").stdout
+    assert default.stdout.index("bin/emdflow devices") > pip_install
+    assert "bin/emdflow devices" not in _dry_run("--opencl", "apt").stdout
 
 
 def test_udev_rules_are_well_formed():

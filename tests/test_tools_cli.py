@@ -578,3 +578,43 @@ def test_exit_code_as_a_process(tmp_path):
                        env=_env(), capture_output=True, text=True, timeout=60)
     assert r.returncode == 2
     assert r.stderr.strip().splitlines() == [f"emdflow flow: error: {missing}: no such file or directory"]
+
+
+# --------------------------------------------------------------------------------- devices
+
+
+def test_devices_lists_what_runs_the_engine_and_marks_the_choice(capsys):
+    """``emdflow devices`` tries every listed device for real and marks the one the engine
+    takes when left to choose (exit 0)."""
+    pytest.importorskip("pyopencl")
+    listed = emdflow.opencl_devices()
+    assert main(["devices"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    rows = out[:len(listed)]
+    for (index, name), row in zip(listed, rows):
+        assert row[2:].startswith(f"{index}  {name}  ") and (row.endswith("works") or "fails: " in row)
+    chosen = emdflow.FlowEstimator(64, 48).device
+    marked = [row for row in rows if row.startswith("*")]
+    assert len(marked) == 1 and f"  {chosen}  works" in marked[0]
+    assert out[len(listed)].startswith(f"the engine runs on {chosen} ")
+
+
+def test_devices_says_why_no_device_runs_the_engine(monkeypatch, capsys):
+    """Where every device's compiler rejects the kernels (here: a kernel file broken on
+    purpose, compiled for real), each line carries the compiler's error line and the
+    command fails with exit 1 and one error line."""
+    pytest.importorskip("pyopencl")
+    from emdflow import opencl_backend
+
+    real = opencl_backend.kernel_source
+    token = os.urandom(4).hex()  # a program of its own (failures are remembered per source)
+    monkeypatch.setattr(opencl_backend, "kernel_source",
+                        lambda name: real(name) + (f"\n#error broken on purpose {token}\n" if name == "evd.cl" else ""))
+    assert main(["devices", "--model", "extended"]) == 1
+    captured = capsys.readouterr()
+    rows = captured.out.splitlines()
+    assert len(rows) == len(emdflow.opencl_devices()) and not any(row.startswith("*") for row in rows)
+    assert all("fails: " in row and "error:" in row for row in rows)
+    assert any(f"broken on purpose {token}" in row for row in rows)
+    err = captured.err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("emdflow devices: error: the engine cannot run (")
