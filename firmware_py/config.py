@@ -121,6 +121,14 @@ class DaemonConfig:
     blind_after_s: float = _opt(0.25, minimum=0.02, maximum=10.0, doc="no frame for this long = blind, s")
 
 
+#: The wire protocols over which each autopilot setting's flow message set can go
+#: (spec/autopilot-links.md): ArduPilot also reads MSP (FLOW_TYPE = 7), PX4 only MAVLink,
+#: INAV only MSP; "both" is the two MAVLink messages.
+_AUTOPILOT_PROTOCOLS = {"ardupilot": ("mavlink", "msp"), "px4": ("mavlink",), "inav": ("msp",),
+                        "both": ("mavlink",)}
+_AUTOPILOT_NAMES = {"ardupilot": "ArduPilot", "px4": "PX4", "inav": "INAV",
+                    "both": "'both' (OPTICAL_FLOW and OPTICAL_FLOW_RAD)"}
+
 SECTIONS: dict[str, type] = {
     "source": SourceConfig,
     "optics": OpticsConfig,
@@ -165,6 +173,13 @@ class Config:
             raise ConfigError(f"{where}: [source] width and height must be given together")
         if self.daemon.reopen_backoff_max_s < self.daemon.reopen_backoff_s:
             raise ConfigError(f"{where}: [daemon] reopen_backoff_max_s must be >= reopen_backoff_s")
+        autopilot, protocol = self.link.autopilot, self.link.protocol
+        speaks = _AUTOPILOT_PROTOCOLS.get(autopilot, ())
+        if protocol is not None and speaks and protocol not in speaks:
+            raise ConfigError(
+                f"{where}: [link] autopilot = {autopilot!r} with protocol = {protocol!r} (--autopilot / "
+                f"--protocol): {_AUTOPILOT_NAMES[autopilot]} takes optical flow over "
+                f"{' or '.join(speaks)} only; leave protocol out or set it to {speaks[0]!r}")
 
     def focal_length_px(self, width: int, default: float | None) -> float:
         """Focal length at the processing width, px: explicit value, else from the field of
@@ -240,6 +255,12 @@ def config_from_dict(data: dict, *, origin: str = "configuration") -> Config:
     """Build a validated :class:`Config` from parsed TOML; errors name ``origin`` and key."""
     config = Config(path=origin)
     for section, values in data.items():
+        if section not in SECTIONS and not isinstance(values, dict):  # a key above every [section]
+            homes = [f"[{name}] {section}" for name, cls in SECTIONS.items()
+                     if section in {f.name for f in dataclasses.fields(cls)}]
+            raise ConfigError(f"{origin}: key {section} is outside every section; keys belong under a "
+                              f"[section] header" + (f" (e.g. {homes[0]})" if homes else
+                                                     f" (sections: {', '.join(SECTIONS)})"))
         if section not in SECTIONS:
             raise ConfigError(f"{origin}: unknown section [{section}] (known: {', '.join(SECTIONS)})")
         if not isinstance(values, dict):
@@ -252,6 +273,10 @@ def config_from_dict(data: dict, *, origin: str = "configuration") -> Config:
                     f"{origin}: unknown key [{section}] {key} (known: {', '.join(sorted(known))})"
                 )
             config.set(section, key, value, origin=origin)
+    optics = data.get("optics", {})
+    if "focal_length_px" in optics and "horizontal_fov_deg" in optics:  # (a flag may override one)
+        raise ConfigError(f"{origin}: [optics] focal_length_px and horizontal_fov_deg both given: "
+                          "they say the same thing, keep one")
     config.validate()
     return config
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import threading
 import time
 from collections import deque
@@ -34,7 +35,7 @@ import emdflow
 from emdflow.cues import looming_cues
 
 from .angular import RecentIntervals
-from .config import Config
+from .config import Config, ConfigError
 from .links import FlowSample
 from .sdnotify import Notifier
 from .sources import Frame, FrameSource, SourceError, host_us, make_source
@@ -461,7 +462,12 @@ class Daemon:
         if backend == "numpy":
             log.warning("engine backend 'numpy' (reference implementation): 10-100x slower than "
                         "OpenCL; expect a low frame rate. Install an OpenCL driver for flight use.")
-        return emdflow.FlowEstimator(width, height, backend=backend, **self.config.engine.estimator_options())
+        try:
+            return emdflow.FlowEstimator(width, height, backend=backend, **self.config.engine.estimator_options())
+        except ValueError as exc:  # a setting, not a failure: exit 2 (systemd does not restart)
+            choice = os.environ.get("EMDFLOW_OPENCL_DEVICE")
+            where = f"EMDFLOW_OPENCL_DEVICE={choice!r}" if choice and backend == "opencl" else "[engine]"
+            raise ConfigError(f"{where}: {exc}") from None
 
     def _default_link(self, focal_length_px: float):
         from .links import LinkConfig, open_link

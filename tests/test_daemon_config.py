@@ -52,6 +52,14 @@ def _write(tmp_path, text):
     ("[source]\nwidth = 320\n", "width and height must be given together"),
     ("[daemon]\nreopen_backoff_s = 5.0\nreopen_backoff_max_s = 1.0\n", "reopen_backoff_max_s"),
     ("[link\nport = 1\n", "not valid TOML"),
+    ("port = '/dev/ttyS0'\n", "key port is outside every section; keys belong under a [section] header "
+                              "(e.g. [link] port)"),
+    ("speed = 3\n", "key speed is outside every section"),
+    ("[optics]\nfocal_length_px = 300.0\nhorizontal_fov_deg = 60.0\n",
+     "focal_length_px and horizontal_fov_deg both given"),
+    ("[link]\nautopilot = 'px4'\nprotocol = 'msp'\n", "PX4 takes optical flow over mavlink only"),
+    ("[link]\nautopilot = 'inav'\nprotocol = 'mavlink'\n", "INAV takes optical flow over msp only"),
+    ("[link]\nautopilot = 'both'\nprotocol = 'msp'\n", "over mavlink only"),
 ])
 def test_bad_config_names_file_and_key(tmp_path, text, needle):
     path = _write(tmp_path, text)
@@ -207,3 +215,18 @@ def test_engine_model_selects_the_estimator_options(tmp_path):
     assert emdflow.FlowEstimator(64, 48, backend="numpy", **dense).params.evidence_row_step_for(48) == 1
     with pytest.raises(ConfigError, match="evidence_row_step"):
         load_config(_write(tmp_path, '[engine]\nevidence_row_step = -2\n'))
+
+
+def test_autopilot_and_protocol_that_fit_together(tmp_path):
+    """ArduPilot reads MSP too (FLOW_TYPE = 7): that pair is allowed; a contradictory pair
+    made by a flag over the file is refused like one in the file."""
+    config = load_config(_write(tmp_path, "[link]\nautopilot = 'ardupilot'\nprotocol = 'msp'\n"))
+    assert (config.link.autopilot, config.link.protocol) == ("ardupilot", "msp")
+    config.set("link", "autopilot", "px4")
+    with pytest.raises(ConfigError, match="--autopilot / --protocol"):
+        config.validate()
+    # a flag's focal length over a file's field of view is an override, not a contradiction
+    config = load_config(_write(tmp_path, "[optics]\nhorizontal_fov_deg = 60.0\n"))
+    config.set("optics", "focal_length_px", 300.0)
+    config.validate()
+    assert config.focal_length_px(320, None) == 300.0

@@ -119,6 +119,21 @@ def test_no_opencl_platform_is_a_clear_error(tmp_path):
     assert "Traceback" not in result.stderr
 
 
+def test_an_opencl_device_choice_that_names_none_is_a_configuration_error(tmp_path):
+    """EMDFLOW_OPENCL_DEVICE naming no device is a setting to fix, not a crash: one line
+    that names the variable and the devices there are, exit 2 (systemd does not restart)."""
+    pytest.importorskip("pyopencl")
+    pty = PtyPair()
+    try:
+        result = run_cli(["--source", "synthetic:", "--serial", pty.path, "--frames", 5],
+                         env={"EMDFLOW_OPENCL_DEVICE": "no-such-device"}, timeout=120)
+    finally:
+        pty.close()
+    assert result.returncode == 2, result.stderr
+    assert "EMDFLOW_OPENCL_DEVICE='no-such-device': OpenCL device 'no-such-device' not found among" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
 @pytest.mark.skipif(shutil.which("socat") is None, reason="socat not installed (apt-get install socat)")
 def test_serial_port_that_disappears_and_comes_back(tmp_path):
     daemon_end, reader_end = tmp_path / "ttyFC", tmp_path / "ttyReader"

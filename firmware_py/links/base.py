@@ -39,8 +39,9 @@ import math
 from dataclasses import dataclass, replace
 
 from ..angular import VALID_ROTATIONS_DEG, FlowIntegrator, FlowInterval, RecentIntervals
+from ..clock import host_us
 from .message_log import MessageLog
-from .serial_port import OutgoingMessage, SerialTransport, host_now_us
+from .serial_port import OutgoingMessage, SerialTransport
 
 __all__ = ["FlowSample", "LinkConfig", "FlowLink", "choose_message_rate", "AUTOPILOTS", "PROTOCOLS",
            "BLIND_RATE_HZ", "resolve_protocol"]
@@ -253,7 +254,7 @@ class FlowLink:
         self.transport = SerialTransport(port=config.port, baud=config.baud, stats=self.stats,
                                          max_queue_messages=self._queue_capacity(),
                                          on_open=self._on_open, on_sent=self._on_sent)
-        self.transport.try_open(host_now_us())
+        self.transport.try_open(host_us())
         self.transport.pump()
 
     # -- configuration hooks ---------------------------------------------------------
@@ -303,7 +304,7 @@ class FlowLink:
         never raises.
         """
         try:
-            self._submit(sample, host_now_us() if now_host_us is None else int(now_host_us))
+            self._submit(sample, host_us() if now_host_us is None else int(now_host_us))
         except Exception:  # noqa: BLE001 - the frame loop must survive any link bug
             self._internal_error("submit")
 
@@ -473,7 +474,7 @@ class FlowLink:
         self._emit(self._quality0_interval(end_us=end, span_us=span), capture_host_us=None, now=now)
 
     def _emit(self, interval: FlowInterval, *, capture_host_us: int | None, now: int | None = None) -> None:
-        now = host_now_us() if now is None else now
+        now = host_us() if now is None else now
         self._last_flow_host_us = now
         self._last_report_end_us = interval.end_us
         self.stats["flow_reports"] += 1

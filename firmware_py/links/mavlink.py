@@ -30,8 +30,8 @@ import math
 from pymavlink.dialects.v20 import common as mavlink2
 
 from ..angular import FlowInterval
+from ..clock import host_us
 from .base import FlowLink, LinkConfig, carry_round
-from .serial_port import host_now_us
 
 __all__ = ["MavlinkLink", "new_encoder", "pack", "MESSAGE_SETS", "WIRE_BYTES",
            "HEARTBEAT_TYPE", "encode_heartbeat"]
@@ -183,7 +183,7 @@ class MavlinkLink(FlowLink):
         if self._next_extras_us is not None and ts < self._next_extras_us:
             return
         self._next_extras_us = ts + int(1e6 / EXTRAS_RATE_HZ)
-        now = host_now_us()
+        now = host_us()
         for name, value in sample.extras:
             msg = self.encoder.named_value_float_encode(
                 time_boot_ms=(ts // 1000) & 0xFFFFFFFF, name=str(name)[:10].encode(), value=float(value))

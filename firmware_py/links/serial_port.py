@@ -25,14 +25,11 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 
-__all__ = ["SerialTransport", "OutgoingMessage", "host_now_us"]
+from ..clock import host_us
+
+__all__ = ["SerialTransport", "OutgoingMessage"]
 
 log = logging.getLogger(__name__)
-
-
-def host_now_us() -> int:
-    """Host monotonic clock, µs (the clock of ``FlowSample.capture_host_us``)."""
-    return time.monotonic_ns() // 1000
 
 
 @dataclass(slots=True)
@@ -129,7 +126,7 @@ class SerialTransport:
         """Open the port now if it is closed and the back-off allows (never raises)."""
         if self._fd is not None or self.port is None:
             return self._fd is not None
-        now_us = host_now_us() if now_us is None else now_us
+        now_us = host_us() if now_us is None else now_us
         if now_us < self._next_open_us:
             return False
         import serial  # pyserial; imported late so the module loads without it for docs
@@ -168,7 +165,7 @@ class SerialTransport:
 
     def _lost(self, what: str, exc: BaseException, now_us: int | None) -> None:
         """The port failed: close it and schedule a reopen."""
-        now_us = host_now_us() if now_us is None else now_us
+        now_us = host_us() if now_us is None else now_us
         self._fail(f"serial port {self.port}: {what} failed ({exc}); closing, will reopen")
         self._close_fd()
         self._next_open_us = now_us + self._backoff_us
@@ -189,8 +186,8 @@ class SerialTransport:
 
     def close(self, *, flush_timeout_s: float = 0.2) -> None:
         """Write what is queued (best effort, bounded time) and close the port."""
-        deadline = host_now_us() + int(flush_timeout_s * 1e6)
-        while self._fd is not None and (self._queue or self._current) and host_now_us() < deadline:
+        deadline = host_us() + int(flush_timeout_s * 1e6)
+        while self._fd is not None and (self._queue or self._current) and host_us() < deadline:
             before = (len(self._queue), self._current_offset)
             self.pump()
             if (len(self._queue), self._current_offset) == before:
@@ -204,7 +201,7 @@ class SerialTransport:
         ``first`` puts it before everything queued (the greeting heartbeat after an open).
         """
         # Age is measured on the real monotonic clock whatever clock the caller uses.
-        message.queued_host_us = host_now_us()
+        message.queued_host_us = host_us()
         while len(self._queue) >= self.max_queue_messages:
             self._count_drop(self._queue.popleft())
         if first:
@@ -232,7 +229,7 @@ class SerialTransport:
         """Hand queued bytes to the OS as far as it accepts them without waiting."""
         if self._fd is None:
             # No port: keep only fresh messages so a reopen does not send stale data.
-            now_us = host_now_us()
+            now_us = host_us()
             while self._queue and now_us - self._queue[0].queued_host_us > self.max_age_us:
                 self._count_drop(self._queue.popleft(), stale=True)
             return
@@ -242,7 +239,7 @@ class SerialTransport:
                     return
                 if self._kernel_backlog() > self.kernel_limit_bytes:
                     return
-                now = host_now_us()
+                now = host_us()
                 message = self._queue.popleft()
                 if now - message.queued_host_us > self.max_age_us:
                     self._count_drop(message, stale=True)
@@ -262,7 +259,7 @@ class SerialTransport:
             self._current_offset += n
             if self._current_offset < len(message.data):
                 return  # the kernel buffer is full; finish this message next time
-            done_us = host_now_us()
+            done_us = host_us()
             self._current, self._current_offset = None, 0
             self.stats["bytes_written"] += len(message.data)
             sent = self.stats["messages_sent"]

@@ -14,6 +14,8 @@ import time
 import cv2
 import numpy as np
 
+from ..clock import host_us
+
 __all__ = ["Frame", "FrameSource", "SourceError", "FrameError", "Pacer", "fit_to", "centre_crop",
            "host_us"]
 
@@ -32,11 +34,6 @@ class FrameError(SourceError):
     Sources skip such a frame and count it (:attr:`FrameSource.bad_frames`) instead of
     treating it as a lost device; only a run of them ends in :class:`SourceError`.
     """
-
-
-def host_us() -> int:
-    """Host monotonic clock in microseconds (``CLOCK_MONOTONIC``, as V4L2 and DepthAI use)."""
-    return time.monotonic_ns() // 1000
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
