@@ -125,6 +125,12 @@ def main(argv: list[str] | None = None) -> int:
         if not config.link.port:
             raise ConfigError(f"{config.path or 'configuration'}: no serial port: give --serial PORT "
                               "or [link] port (or try 'emdflowd --demo')")
+        from .links.serial_port import port_problem
+
+        problem = port_problem(config.link.port)
+        if problem:  # (a port that does not exist yet is retried: USB adapters come and go)
+            raise ConfigError(f"{config.path or 'configuration'}: [link] port (--serial) "
+                              f"{config.link.port}: {problem}")
     except ConfigError as exc:
         log.error("%s", exc)
         return EXIT_CONFIG

@@ -146,6 +146,19 @@ def test_bad_synthetic_option_is_a_configuration_error(tmp_path, where):
     assert "Traceback" not in result.stderr
 
 
+@pytest.mark.parametrize("kind", ["directory", "regular file"])
+def test_a_port_that_can_never_be_a_serial_port_is_a_configuration_error(tmp_path, kind):
+    """A path that exists but is no character device (a typo that hits a folder or a file)
+    is refused at start (exit 2); a path that does not exist yet is retried instead (see
+    test_daemon_faults: a USB adapter plugged in later)."""
+    port = tmp_path / "ttyFC"
+    port.mkdir() if kind == "directory" else port.write_text("")
+    result = run_cli(["--source", "synthetic:", "--serial", port, "--frames", 3], timeout=60)
+    assert result.returncode == 2, result.stderr[-2000:]
+    assert f"[link] port (--serial) {port}: is a {kind}, not a serial device" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
 def test_demo_with_a_bad_synthetic_option_exits_2():
     result = run_cli(["--demo", "--source", "synthetic:noise=-1"], timeout=60)
     assert result.returncode == 2

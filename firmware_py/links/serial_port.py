@@ -27,9 +27,28 @@ from dataclasses import dataclass, field
 
 from ..clock import host_us
 
-__all__ = ["SerialTransport", "OutgoingMessage"]
+__all__ = ["SerialTransport", "OutgoingMessage", "port_problem"]
 
 log = logging.getLogger(__name__)
+
+
+def port_problem(port: str) -> str | None:
+    """Why ``port`` can never be a serial port, or None. A path that does not exist (yet) is
+    no problem: a USB adapter or a udev link appears when plugged in, and the link retries.
+    A path that exists must be a character device (a tty, a pseudo-terminal)."""
+    import stat
+
+    try:
+        mode = os.stat(port).st_mode
+    except OSError:
+        return None  # missing (retried), or a pyserial URL such as socket://host:port
+    if stat.S_ISCHR(mode):
+        return None
+    if stat.S_ISDIR(mode):
+        return "is a directory, not a serial device"
+    if stat.S_ISREG(mode):
+        return "is a regular file, not a serial device"
+    return "is not a character device (a serial port is one)"
 
 
 @dataclass(slots=True)
