@@ -310,7 +310,12 @@ def _output_problem(path: str) -> str | None:
 
 
 def _plot_type_problem(path: str) -> str | None:
-    """Why matplotlib cannot choose an image type for ``path``, or None."""
+    """Why matplotlib cannot draw ``path`` (not installed, or no image type for it), or None."""
+    from .tools import matplotlib_missing
+
+    missing = matplotlib_missing()
+    if missing:
+        return missing
     from matplotlib.backend_bases import FigureCanvasBase
 
     ext = Path(path).suffix.lower()

@@ -7,6 +7,7 @@ Subcommands::
     emdflow eval [--quick]             # camera flights with exact truth, engine vs OpenCV DIS
     emdflow bench ...                  # the benchmark (emdflow.bench)
     emdflow devices                    # which OpenCL devices run the engine, which one it takes
+    emdflow render INPUT -o OUT.mkv    # the frames themselves as gray lossless video (e.g. a synthetic flight)
 
 Errors are one line on stderr naming the offending file; exit code 2 for bad input or
 usage, 1 when the engine cannot start (e.g. no OpenCL platform), 130 on Ctrl-C.
@@ -19,7 +20,7 @@ import os
 import sys
 from pathlib import Path
 
-__all__ = ["main", "build_parser", "run_flow"]
+__all__ = ["main", "build_parser", "run_flow", "run_render"]
 
 
 def _auto_upscale(width: int) -> int:
@@ -150,6 +151,42 @@ def run_flow(args) -> int:
     return 0
 
 
+def run_render(args) -> int:
+    """``emdflow render``: the input's gray frames, as the engine sees them, into a video
+    (gray lossless FFV1 by default: a recording for the daemon's ``video:`` and
+    ``depthai-replay:`` sources)."""
+    from emdflow.tools import ToolError, check_positive, progress_bar
+    from emdflow.tools.video_io import VideoWriter, open_frames, parse_size
+
+    check_positive("--fps", args.fps, "frames/s")
+    try:
+        size = parse_size(args.size) if args.size else None
+    except ValueError as e:
+        raise ToolError(f"--size: {e}", 2) from None
+    if Path(args.input).resolve() == Path(args.output).resolve():
+        raise ToolError(f"{args.output}: output would overwrite the input", 2)
+    source = open_frames(args.input, size=size, fps=args.fps, max_frames=args.max_frames)
+    fps = source.fps or 30.0
+    writer = VideoWriter(args.output, fps, args.codec, gray=(args.codec or "ffv1") == "ffv1")
+    try:
+        with writer, progress_bar(source.frame_count, "render", disable=args.quiet) as bar:
+            for frame in source:
+                writer.write(frame)
+                bar.update(1)
+    except KeyboardInterrupt:
+        print(f"emdflow render: interrupted after {writer.frames_written} frames", file=sys.stderr)
+        return 130
+    finally:
+        source.close()
+    if writer.frames_written == 0:
+        raise ToolError(f"{args.input}: no frames", 2)
+    if not args.quiet:
+        kind = "gray " if writer.gray else ""
+        print(f"wrote {args.output}: {writer.frames_written} frames {writer.size[0]}x{writer.size[1]} at "
+              f"{fps:g} fps ({kind}{writer.codec})", file=sys.stderr)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argparse parser of the ``emdflow`` command."""
     from emdflow import __version__
@@ -181,6 +218,22 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_arguments(p)
     p.set_defaults(run=evaluate.run)
     sub.add_parser("bench", help="benchmark (see 'emdflow bench -h')", add_help=False)
+    p = sub.add_parser("render", help="write the input's gray frames as a video (gray lossless FFV1)",
+                       description="Write the frames of INPUT (a synthetic flight, a video, images) as the "
+                                   "engine sees them — gray, resized — into a video: gray lossless FFV1 "
+                                   "in .mkv/.avi by default, a recording the daemon's video: and "
+                                   "depthai-replay: sources read back exactly.")
+    p.add_argument("input", metavar="INPUT",
+                   help="video file, folder of images, one image, or synthetic:KEY=VALUE,... "
+                        "(keys texture,u,v,frames,size,noise,contrast,drift,zoom,fps,seed)")
+    p.add_argument("-o", "--output", required=True, metavar="VIDEO", help=".mkv/.avi (FFV1) or .mp4 (mp4v)")
+    p.add_argument("--codec", choices=("ffv1", "mjpg", "mp4v"),
+                   help="ffv1 (default for .mkv/.avi): gray, lossless; mjpg, mp4v: lossy, colour channels")
+    p.add_argument("--fps", type=float, help="frame rate (overrides the input's; default 30 for folders)")
+    p.add_argument("--size", metavar="WxH", help="resize frames (area interpolation)")
+    p.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(run=run_render)
     p = sub.add_parser("devices", help="which OpenCL devices run the engine, and which one it takes",
                        description="Build the kernels and run one frame on every OpenCL device; say "
                                    "which work (or why not) and which one the engine takes when left "

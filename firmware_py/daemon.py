@@ -277,6 +277,8 @@ class SourceKeeper:
         self._bad_seen = 0  # the source's bad_frames already added to stats.bad_frames
         #: time.monotonic() when the current source.read() started, None outside a read
         self.reading_since: float | None = None
+        #: a recording (file, replay) reached its end: nothing more to read, nothing to reopen
+        self.ended = False
 
     def adopt(self, source: FrameSource) -> None:
         """Use an already opened source (opened at start-up to learn its size)."""
@@ -328,6 +330,8 @@ class SourceKeeper:
     def read(self) -> Frame | None:
         """Next frame, or None while the source is unavailable (back-off running)."""
         with self._lock:
+            if self.ended:
+                return None
             if self.source is None:
                 if time.monotonic() < self._next_try or not self._open():
                     return None
@@ -347,6 +351,12 @@ class SourceKeeper:
                 self._fail(error if source.uri in error else f"source {source.uri}: {error}")
                 return None
             if frame is None:
+                if not source.live:  # a recording ends; a camera's stream ending is a loss
+                    log.info("source %s: end of stream: stopping (a file replays with [source] loop "
+                             "= true)", source.uri)
+                    self.ended = True
+                    self.close()
+                    return None
                 self._fail(f"source {source.uri}: end of stream")
                 return None
             done = host_us()
@@ -381,6 +391,8 @@ class _CaptureThread(threading.Thread):
         while not self.stop.is_set():
             frame = self.keeper.read()
             if frame is None:
+                if self.keeper.ended:  # every frame is in the mailbox: the loop stops after them
+                    break
                 self.stop.wait(min(max(self.keeper.retry_in_s(), 0.005), 0.05))
                 continue
             self.stats.frames_in += 1
@@ -605,16 +617,23 @@ class Daemon:
         limit = self.config.frames
         while not self.stop_event.is_set():
             if mailbox is not None:
+                # (read before get: the capture thread puts a recording's last frame before it
+                # marks the end, so after the end an empty mailbox stays empty)
+                ended = keeper.ended
                 frame = mailbox.get(_POLL_S)
             else:
                 frame = keeper.read()
+                ended = keeper.ended
                 if frame is not None:
                     self.stats.frames_in += 1
-                else:
+                elif not ended:
                     self.stop_event.wait(min(max(keeper.retry_in_s(), 0.001), _POLL_S))
             now_s = time.monotonic()
             if frame is not None:
                 self._process(frame, now_s)
+            elif ended:  # a recording's last frame is processed: send what is queued, stop
+                self.link.service(host_us())
+                break
             elif now_s - self._last_frame_host_s > self._gap_s(d.blind_after_s):
                 self._blind(now_s)
             self.link.service(host_us())

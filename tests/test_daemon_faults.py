@@ -33,12 +33,14 @@ def _flow_qualities(msgs):
     return [(m.get_type(), getattr(m, "quality", None)) for m in msgs if m.get_type() in ("OPTICAL_FLOW", "HEARTBEAT")]
 
 
-def test_source_that_ends_is_reopened_while_heartbeats_continue(tmp_path):
+@pytest.mark.parametrize("threading", ["single", "capture-thread"])
+def test_a_video_file_that_ends_stops_the_daemon_after_its_last_frame(tmp_path, threading):
+    """A recording is finished at its end (exit 0): every frame processed and its flow
+    sent, no reopen and no blind phase; ``--frames`` beyond the file's length is a cap, not
+    a loop (``[source] loop = true`` replays a file)."""
     clip = write_video(tmp_path / "short.avi", flight_frames(12, width=96, height=72), fps=50)
     # the paper's model: its 3-frame history fits a 12-frame clip (the extended model needs 12)
-    config = _config(tmp_path, 'model = "paper"\n'
-                               "[link]\nheartbeat_rate_hz = 10.0\n[daemon]\nreopen_backoff_s = 0.5\n"
-                               "blind_after_s = 0.05\nlog_interval_s = 1.0\n")
+    config = _config(tmp_path, f'model = "paper"\n[daemon]\nthreading = "{threading}"\n')
     pty = PtyPair()
     drain = Drain(pty.master)
     try:
@@ -49,19 +51,17 @@ def test_source_that_ends_is_reopened_while_heartbeats_continue(tmp_path):
         pty.close()
     assert result.returncode == 0, result.stderr[-3000:]
     err = result.stderr
-    assert err.count("end of stream; reopening in") == 2          # 12 + 12 + 6 frames
-    assert "short.avi reopened" in err and "estimator reset" in err
-    assert "Traceback" not in err
-    seq = _flow_qualities(parse_mavlink(data))
-    good = [i for i, (name, q) in enumerate(seq) if name == "OPTICAL_FLOW" and q > 0]
-    blind = [i for i, (name, q) in enumerate(seq) if name == "OPTICAL_FLOW" and q == 0 and i > good[0]]
-    assert blind, "no quality-0 flow message while the source was closed"
-    gap = seq[blind[0]:next(i for i in good if i > blind[0])]
-    assert ("HEARTBEAT", None) in gap                             # heartbeats went on meanwhile
+    assert "short.avi: end of stream: stopping" in err
+    assert "reopening" not in err and "camera blind" not in err and "Traceback" not in err
+    assert "reopens 0 blind 0" in err                           # the final status line
+    flows = [m for m in parse_mavlink(data) if m.get_type() == "OPTICAL_FLOW"]
+    assert len(flows) == 12                                     # one per frame of the file
+    assert [m.quality > 0 for m in flows] == [False] * 3 + [True] * 9
 
 
-def _run_inprocess(tmp_path, factory, frames):
+def _run_inprocess(tmp_path, factory, frames, heartbeat_rate_hz=1.0):
     config = Config()
+    config.set("link", "heartbeat_rate_hz", heartbeat_rate_hz)
     config.set("source", "uri", "synthetic:u=2,v=1")
     config.set("source", "width", 96)
     config.set("source", "height", 72)
@@ -82,7 +82,7 @@ def test_source_that_raises_is_reopened_and_link_reports_blind(tmp_path, caplog)
         made.append(FaultySource(inner, fail_at=15 if not made else None))
         return made[-1]
 
-    code, daemon, msgs = _run_inprocess(tmp_path, factory, frames=40)
+    code, daemon, msgs = _run_inprocess(tmp_path, factory, frames=40, heartbeat_rate_hz=20.0)
     assert code == 0
     assert daemon.stats.processed == 40 and daemon.stats.reopens == 1 and len(made) == 2
     assert "synthetic:u=2,v=1: read failed (USB camera unplugged); reopening in 0.2 s" in caplog.text
@@ -93,6 +93,15 @@ def test_source_that_raises_is_reopened_and_link_reports_blind(tmp_path, caplog)
     first_blind = qualities.index(0, 5)                    # quality 0 while unplugged ...
     assert any(q > 0 for q in qualities[first_blind:])     # ... and good flow again after
     assert daemon.link.stats["blind_reports"] >= 1
+    # heartbeats go on while the camera is away (between the first blind report and the
+    # first good flow after it)
+    seq = [(m.get_type(), getattr(m, "quality", None)) for m in msgs
+           if m.get_type() in ("OPTICAL_FLOW", "HEARTBEAT")]
+    good = [i for i, (name, q) in enumerate(seq) if name == "OPTICAL_FLOW" and q > 0]
+    blind = [i for i, (name, q) in enumerate(seq) if name == "OPTICAL_FLOW" and q == 0 and i > good[0]]
+    assert blind, "no quality-0 flow message while the source was closed"
+    gap = seq[blind[0]:next(i for i in good if i > blind[0])]
+    assert ("HEARTBEAT", None) in gap
 
 
 def test_frame_of_wrong_size_is_skipped_with_a_clear_line(tmp_path, caplog):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import sys
 import threading
@@ -85,10 +86,17 @@ def test_threading_choice():
     assert choose_threading("capture-thread", live=False) == "capture-thread"
 
 
+def _live(source):
+    """A file source that stands in for a live stream (a camera's stream that ends is lost)."""
+    source.live = True
+    return source
+
+
 def test_source_keeper_reopens_with_backoff(tmp_path, caplog):
     path = write_video(tmp_path / "short.avi", flight_frames(5, width=32, height=24), fps=50)
     stats = Stats()
-    keeper = SourceKeeper(lambda: make_source(f"video:{path}"), backoff_s=0.05, backoff_max_s=0.2, stats=stats)
+    keeper = SourceKeeper(lambda: _live(make_source(f"video:{path}")), backoff_s=0.05, backoff_max_s=0.2,
+                          stats=stats)
     got = []
     deadline = time.monotonic() + 10
     nones = 0
@@ -103,6 +111,20 @@ def test_source_keeper_reopens_with_backoff(tmp_path, caplog):
     assert stats.reopens == 2 and nones >= 2
     assert "end of stream; reopening in 0.1 s" in caplog.text or "end of stream; reopening in 0.05" in caplog.text
     keeper.close()
+
+
+def test_source_keeper_ends_with_a_recording(tmp_path, caplog):
+    """A file (not live) is read once: at its end the keeper says so and never reopens it."""
+    caplog.set_level(logging.INFO)
+    path = write_video(tmp_path / "short.avi", flight_frames(5, width=32, height=24), fps=50)
+    stats = Stats()
+    keeper = SourceKeeper(lambda: make_source(f"video:{path}"), backoff_s=0.01, stats=stats)
+    got = [keeper.read() for _ in range(6)]
+    assert [f.index for f in got[:5]] == [0, 1, 2, 3, 4] and got[5] is None
+    assert keeper.ended and keeper.source is None
+    time.sleep(0.05)  # past any back-off: still nothing, and nothing reopened
+    assert keeper.read() is None and stats.reopens == 0
+    assert "short.avi: end of stream: stopping" in caplog.text
 
 
 def test_source_keeper_backoff_grows_while_source_is_missing(tmp_path, caplog):

@@ -241,6 +241,29 @@ def test_eval_csv_table_and_plot(tmp_path, backend, capsys):
     _one_line_error(capsys, bad)
 
 
+def test_plots_without_matplotlib(tmp_path, monkeypatch, capsys):
+    """Installed with the ``pocl`` extra alone there is no matplotlib: ``emdflow eval``
+    leaves its default plot out with a note, an explicit ``--plot`` is an error before
+    anything is flown or timed (eval and bench), one line with the fix."""
+    out_csv = tmp_path / "e.csv"
+    assert main(["eval", "--size", "96x72", "--speeds", "1", "--directions", "0", "--variants", "base",
+                 "--frames", "1", "--repeats", "1", "--no-dis", "--backend", "numpy", "-q",
+                 "--csv", str(out_csv), "--plot", ""]) == 0
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib now fails
+    monkeypatch.chdir(tmp_path)
+    capsys.readouterr()
+    assert main(["eval", "--from-csv", str(out_csv)]) == 0
+    assert 'no plot: matplotlib is not installed (pip install "emdflow[tools]")' in capsys.readouterr().err
+    assert not (tmp_path / "emdflow_eval.png").exists()
+    assert main(["eval", "--from-csv", str(out_csv), "--plot", "p.png"]) == 2
+    _one_line_error(capsys, "--plot p.png", 'pip install "emdflow[tools]"')
+    with pytest.raises(SystemExit) as usage:  # (the benchmark's own parser: a usage error)
+        main(["bench", "--sizes", "32x24", "--plot", "b.png"])
+    assert usage.value.code == 2
+    err = capsys.readouterr().err
+    assert "--plot b.png" in err and "matplotlib is not installed" in err
+
+
 def test_eval_truth_field_matches_the_renderer():
     """The exact per-pixel truth warps frame t−1 onto frame t (zoom + translation)."""
     from emdflow.tools.evaluate import fit_expansion, truth_field
@@ -578,6 +601,41 @@ def test_exit_code_as_a_process(tmp_path):
                        env=_env(), capture_output=True, text=True, timeout=60)
     assert r.returncode == 2
     assert r.stderr.strip().splitlines() == [f"emdflow flow: error: {missing}: no such file or directory"]
+
+
+# ---------------------------------------------------------------------------------- render
+
+
+def test_render_writes_the_frames_the_daemon_reads_back_exactly(tmp_path, capsys):
+    """``emdflow render synthetic:...`` stores the flight as gray lossless FFV1: the
+    daemon's ``video:`` source decodes it to the very frames the renderer made, at the
+    flight's frame rate; a lossy codec stores colour channels, a gray one refuses them."""
+    from emdflow.tools.video_io import open_frames
+    from firmware_py.sources import make_source
+    from firmware_py.sources.video import is_gray_stream
+
+    uri = "synthetic:texture=grass,u=1.5,v=-0.5,frames=12,size=96x72,fps=50"
+    out = tmp_path / "flight.mkv"
+    assert main(["render", uri, "-o", str(out)]) == 0
+    assert "12 frames 96x72 at 50 fps (gray ffv1)" in capsys.readouterr().err
+    expected = list(open_frames(uri))
+    cap = cv2.VideoCapture(str(out))
+    assert is_gray_stream(cap)
+    cap.release()
+    source = make_source(f"video:{out}")
+    source.open()
+    try:
+        got = [source.read() for _ in range(13)]
+    finally:
+        source.close()
+    assert got[12] is None and source.fps == 50
+    for frame, truth in zip(got[:12], expected):
+        np.testing.assert_array_equal(frame.image, truth)
+    assert main(["render", uri, "-o", str(tmp_path / "lossy.avi"), "--codec", "mjpg", "-q"]) == 0
+    assert cv2.VideoCapture(str(tmp_path / "lossy.avi")).read()[1].ndim == 3
+    assert main(["render", uri, "-o", str(out), "--size", "64x48", "--max-frames", "3", "-q"]) == 0
+    assert main(["render", str(out), "-o", str(out)]) == 2
+    _one_line_error(capsys, "would overwrite the input")
 
 
 # --------------------------------------------------------------------------------- devices

@@ -34,13 +34,23 @@ import ast
 import contextlib
 
 __all__ = ["DIS_MIN_LONG_SIDE", "ToolError", "add_engine_arguments", "check_positive", "engine_kwargs",
-           "frame_size_problem", "interp_weights", "make_estimator", "missing_folder", "number_list",
-           "progress_bar"]
+           "frame_size_problem", "interp_weights", "make_estimator", "matplotlib_missing", "missing_folder",
+           "number_list", "progress_bar"]
 
 #: OpenCV DIS (preset ULTRAFAST, patches of 8 px) needs a frame whose longer side is at
 #: least this many px (measured with OpenCV 5.0 for every size from 8x8 to 79x79: it
 #: refuses exactly those whose sides are both below 12).
 DIS_MIN_LONG_SIDE = 12
+
+
+def matplotlib_missing() -> str | None:
+    """Why plots cannot be drawn here, or None: matplotlib comes with the ``tools`` extra
+    (``dev`` has it too), not with ``pocl`` alone."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        return 'matplotlib is not installed (pip install "emdflow[tools]")'
+    return None
 
 
 class ToolError(Exception):

@@ -565,6 +565,8 @@ def write_csv(rows: list[dict], path) -> None:
 
 
 _FLOOR = 0.05  # plotted floor of the log axes (% and degrees)
+#: The plot ``emdflow eval`` draws unless told otherwise (where matplotlib is installed).
+DEFAULT_PLOT = "emdflow_eval.png"
 
 
 def read_csv(path) -> list[dict]:
@@ -698,8 +700,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="small run: gravel, 160x120, 7 speeds, 4 directions, variants base,contrast,zoom")
     p.add_argument("--no-dis", action="store_true", help="skip OpenCV DIS")
     p.add_argument("--csv", default="emdflow_eval.csv", metavar="PATH", help="CSV output (default %(default)s)")
-    p.add_argument("--plot", default="emdflow_eval.png", metavar="PATH",
-                   help="PNG plot (default %(default)s; '' to skip)")
+    p.add_argument("--plot", default=None, metavar="PATH",
+                   help=f"PNG plot (default {DEFAULT_PLOT} where matplotlib is installed, the "
+                        "'tools' extra; '' to skip)")
     p.add_argument("--from-csv", metavar="CSV",
                    help="fly nothing: print the table and draw the plot of an earlier run's CSV")
     p.add_argument("--title", help="title of the plot")
@@ -754,9 +757,27 @@ def config_from_args(args) -> EvalConfig:
     return quick_config(**over) if args.quick else EvalConfig(**over)
 
 
+def _plot_path(args) -> str:
+    """The plot to draw ('' for none): an explicit ``--plot`` needs matplotlib (an error
+    before anything is flown); the default plot is left out, with a note, without it."""
+    from emdflow.tools import ToolError, matplotlib_missing
+
+    missing = matplotlib_missing()
+    if args.plot is None:
+        if missing:
+            print(f"emdflow eval: no plot: {missing}", file=sys.stderr)
+            return ""
+        return DEFAULT_PLOT
+    if args.plot and missing:
+        raise ToolError(f"--plot {args.plot}: {missing}", 2)
+    return args.plot
+
+
 def run(args) -> int:
     """Run ``emdflow eval`` with parsed arguments; returns the exit code."""
     from emdflow.tools import ToolError, make_estimator, missing_folder, progress_bar
+
+    args.plot = _plot_path(args)
 
     if args.from_csv:
         try:

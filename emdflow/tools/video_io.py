@@ -384,13 +384,19 @@ class VideoWriter:
         Frame rate stored in the container.
     codec : {'ffv1', 'mjpg', 'mp4v'}, optional
         Default from the file ending (see :func:`codec_for`).
+    gray : bool
+        Store gray frames as one 8-bit channel (FFV1 only; the daemon's ``video:`` source
+        reads such a stream back bit-exact). Otherwise gray frames are stored as BGR.
 
     The file is opened at the first :meth:`write`, when the frame size is known.
     """
 
-    def __init__(self, path, fps: float = 30.0, codec: str | None = None):
+    def __init__(self, path, fps: float = 30.0, codec: str | None = None, *, gray: bool = False):
         self.path = os.fspath(path)
         self.codec = codec_for(self.path, codec)
+        if gray and self.codec != "ffv1":
+            raise OutputError(f"{self.path}: gray frames are stored with the ffv1 codec only, not {self.codec}")
+        self.gray = gray
         self.fps = float(fps) if fps and fps > 0 else 30.0
         parent = Path(self.path).resolve().parent
         if not parent.is_dir():
@@ -400,14 +406,18 @@ class VideoWriter:
         self.frames_written = 0
 
     def write(self, image: np.ndarray) -> None:
-        """Append one frame (BGR uint8 or gray uint8, all frames the same size)."""
-        if image.ndim == 2:
+        """Append one frame (BGR uint8 or gray uint8, all frames the same size; gray
+        only with ``gray=True``)."""
+        if self.gray:
+            if image.ndim != 2:
+                raise OutputError(f"{self.path}: a gray video takes 2-D frames, not shape {image.shape}")
+        elif image.ndim == 2:
             image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
         h, w = image.shape[:2]
         if self._writer is None:
             fourcc = cv2.VideoWriter_fourcc(*CODECS[self.codec][0])
             with _quiet_native_stderr():
-                writer = cv2.VideoWriter(self.path, cv2.CAP_FFMPEG, fourcc, self.fps, (w, h), True)
+                writer = cv2.VideoWriter(self.path, cv2.CAP_FFMPEG, fourcc, self.fps, (w, h), not self.gray)
             if not writer.isOpened():
                 raise OutputError(f"{self.path}: OpenCV cannot write a {self.codec} video here")
             self._writer, self.size = writer, (w, h)
