@@ -55,7 +55,8 @@ _GAP_INTERVALS = 3.0
 
 
 def choose_threading(setting: str, *, live: bool) -> str:
-    """Resolve ``auto``: a capture thread for cameras, one thread for everything else.
+    """Resolve ``auto``: a capture thread for cameras (``live``; the daemon also passes a
+    paced source on the numpy reference, which cannot keep up), one thread otherwise.
 
     Measured with ``emdflowd --demo`` (320×240 at 100 frames/s, PoCL, 2 cores): one thread
     gives the lower latency when the engine keeps up (p50 3.5–4.7 ms, p99 8–10 ms against
@@ -575,7 +576,10 @@ class Daemon:
                 # The link's keep-alive starts then, but never later than the link's own value
                 # (MSP: 0.15 s, INAV times out after 0.2 s).
                 self.link.blind_after_s = min(self.link.blind_after_s, self.config.daemon.blind_after_s)
-            self.mode = choose_threading(self.config.daemon.threading, live=self.live)
+            # a paced recording or flight fed to the numpy reference is a camera the engine
+            # cannot keep up with: it needs the capture side's evenly spaced subset too
+            paced_slow = self.config.source.realtime and self.config.engine.backend == "numpy"
+            self.mode = choose_threading(self.config.daemon.threading, live=self.live or paced_slow)
             log.info("source %s: %dx%d @ %g fps, focal length %.1f px; engine %s; link %s %s @ %d baud; %s",
                      self.config.source.uri, self.width, self.height, self.fps, self.focal_length_px,
                      self.config.engine.backend, self.config.link_autopilot(), self.config.link.port,

@@ -196,12 +196,8 @@ def _fall_back_without_opencl(config, out) -> bool:
               "\"numpy\" is set).", file=out, flush=True)
         log.error("OpenCL is not usable here (%s): the demo runs on the numpy reference",
                   str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+        # (the daemon then reads the paced flight with a capture thread: see Daemon.run)
         config.set("engine", "backend", "numpy")
-        if config.daemon.threading == "auto":
-            # the paced synthetic flight would otherwise skip whichever frames came due while
-            # the slow engine worked (gaps of 2 or 3 frames at random), which the velocity
-            # templates cannot follow: ±25 % readings, against ~8 % low with a steady subset
-            config.set("daemon", "threading", "capture-thread")
         return True
     return False
 

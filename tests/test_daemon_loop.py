@@ -86,6 +86,29 @@ def test_threading_choice():
     assert choose_threading("capture-thread", live=False) == "capture-thread"
 
 
+def test_a_paced_source_on_the_numpy_reference_gets_the_capture_thread():
+    """``auto`` threading: a paced (``realtime``) flight on the numpy reference is read by a
+    capture thread that passes an evenly spaced subset, as for a camera — one thread would
+    skip whichever frames came due while the slow engine worked (gaps of 1–3 frames at
+    random, which the velocity templates cannot follow); unpaced it stays one thread."""
+    from firmware_py.config import Config
+
+    from daemon_util import run_daemon
+
+    modes = {}
+    for realtime in (True, False):
+        config = Config()
+        config.set("source", "uri", "synthetic:u=2,v=1")
+        config.set("source", "width", 64)
+        config.set("source", "height", 48)
+        config.set("engine", "backend", "numpy")
+        config.source.realtime = realtime
+        code, daemon, _ = run_daemon(config, frames=6)
+        assert code == 0
+        modes[realtime] = daemon.mode
+    assert modes == {True: "capture-thread", False: "single"}
+
+
 def _live(source):
     """A file source that stands in for a live stream (a camera's stream that ends is lost)."""
     source.live = True
