@@ -133,7 +133,7 @@ def _whole_numbers(name: str, values, what: str) -> tuple[int, ...]:
 
 @dataclasses.dataclass(frozen=True)
 class EngineParams:
-    """Parameters of the Elementary Velocity Detector (see ``spec/template-model.md``).
+    """Parameters of the Elementary Velocity Detector (see ``docs/spec/template-model.md``).
 
     Parameters
     ----------

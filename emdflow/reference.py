@@ -1,6 +1,6 @@
 """Numpy reference of the Elementary Velocity Detector — the executable specification.
 
-This module implements ``spec/template-model.md`` (a precise reading of Quelin, Bouzerdoum
+This module implements ``docs/spec/template-model.md`` (a precise reading of Quelin, Bouzerdoum
 & Phung, "Fast digital optical flow estimation based on EMD", EUVIP 2010) in plain,
 vectorised numpy. The OpenCL backend must reproduce it exactly: same ternary states, same
 template matches, same flow codes, same summary statistics. It favours readability over

@@ -1,7 +1,7 @@
 """Global flow summary: what the autopilot flies on.
 
 The detector's output is sparse, quantised to the channels' speeds, and each axis measures
-how fast an edge *crosses that axis*, not a flow component (``spec/template-model.md`` §6):
+how fast an edge *crosses that axis*, not a flow component (``docs/spec/template-model.md`` §6):
 a per-axis mean is 40–100 % off. The summary works on the detection histogram
 ``hist[axis, code, orientation]`` that the backends compute next to the detector, so its
 cost does not depend on the frame size.
@@ -181,7 +181,7 @@ to back). Without the classes
 References
 ----------
 Quelin, Bouzerdoum & Phung, "Fast digital optical flow estimation based on EMD",
-EUVIP 2010; ``spec/template-model.md`` §6 (facts the summary is built on).
+EUVIP 2010; ``docs/spec/template-model.md`` §6 (facts the summary is built on).
 """
 
 from __future__ import annotations
@@ -882,7 +882,7 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
     Notes
     -----
     IoC guess refined by calibrated maximum likelihood over the detection histogram; see
-    the module docstring and ``spec/template-model.md`` §6.
+    the module docstring and ``docs/spec/template-model.md`` §6.
     """
     opts = options or _DEFAULT_OPTIONS
     if not isinstance(field, FlowField):

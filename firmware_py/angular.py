@@ -1,6 +1,6 @@
 """Image flow (px/frame) to angular flow (rad/s, rad) in the flow-sensor axes of MAVLink.
 
-The conversion follows ``shared/spec/autopilot-links.md``:
+The conversion follows ``docs/spec/autopilot-links.md``:
 
 * angle per frame [rad] = pixel flow [px] / focal length [px] (small-angle; the focal length
   is the one *at the processed resolution*);

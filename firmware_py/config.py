@@ -122,7 +122,7 @@ class DaemonConfig:
 
 
 #: The wire protocols over which each autopilot setting's flow message set can go
-#: (spec/autopilot-links.md): ArduPilot also reads MSP (FLOW_TYPE = 7), PX4 only MAVLink,
+#: (docs/spec/autopilot-links.md): ArduPilot also reads MSP (FLOW_TYPE = 7), PX4 only MAVLink,
 #: INAV only MSP; "both" is the two MAVLink messages.
 _AUTOPILOT_PROTOCOLS = {"ardupilot": ("mavlink", "msp"), "px4": ("mavlink",), "inav": ("msp",),
                         "both": ("mavlink",)}
