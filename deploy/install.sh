@@ -161,7 +161,7 @@ if [ "$OPENCL" = pip ]; then
     if [ "$DRY_RUN" = 0 ]; then
         PROBE_CACHE="$(mktemp -d)"
         if ! PROBE_OUT=$(POCL_CACHE_DIR="$PROBE_CACHE" "$VENV/bin/emdflow" devices 2>&1); then
-            WHY=$(printf '%s\n' "$PROBE_OUT" | tail -n1)
+            WHY=$(printf '%s\n' "$PROBE_OUT" | grep -m1 'cannot run' || printf '%s\n' "$PROBE_OUT" | tail -n1)
             echo "   no OpenCL device runs the engine with pip's PoCL ($WHY): adding Debian's PoCL"
             run apt-get install -y --no-install-recommends pocl-opencl-icd
             if ! POCL_CACHE_DIR="$PROBE_CACHE" "$VENV/bin/emdflow" devices; then

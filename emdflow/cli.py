@@ -156,7 +156,7 @@ def run_render(args) -> int:
     (gray lossless FFV1 by default: a recording for the daemon's ``video:`` and
     ``depthai-replay:`` sources)."""
     from emdflow.tools import ToolError, check_positive, progress_bar
-    from emdflow.tools.video_io import VideoWriter, open_frames, parse_size
+    from emdflow.tools.video_io import VideoWriter, codec_for, open_frames, parse_size
 
     check_positive("--fps", args.fps, "frames/s")
     try:
@@ -167,7 +167,8 @@ def run_render(args) -> int:
         raise ToolError(f"{args.output}: output would overwrite the input", 2)
     source = open_frames(args.input, size=size, fps=args.fps, max_frames=args.max_frames)
     fps = source.fps or 30.0
-    writer = VideoWriter(args.output, fps, args.codec, gray=(args.codec or "ffv1") == "ffv1")
+    codec = codec_for(args.output, args.codec)  # (.mp4: mp4v, colour channels)
+    writer = VideoWriter(args.output, fps, codec, gray=codec == "ffv1")
     try:
         with writer, progress_bar(source.frame_count, "render", disable=args.quiet) as bar:
             for frame in source:

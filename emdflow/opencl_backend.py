@@ -336,6 +336,22 @@ def _first_buildable(devices, build):
                            + "\n".join(f"- {exc}" for exc in failures))
 
 
+def error_summary(text: str) -> str:
+    """One line for an OpenCL failure's message (a compiler log runs to many lines): its
+    first line, the compiler's first ``error:`` line where that is another, and the fix
+    where the message carries :data:`_UNKNOWN_CPU_HINT`."""
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    if not lines:
+        return ""
+    line = lines[0]
+    error = next((x for x in lines if "error:" in x), None)
+    if error is not None and error not in line:
+        line = f"{line} ... {error}"
+    if _UNKNOWN_CPU_HINT in text and _UNKNOWN_CPU_HINT not in line:
+        line = f"{line}; {_UNKNOWN_CPU_HINT}"
+    return line
+
+
 def _first_error_line(text: str) -> str:
     for line in text.splitlines():
         if "error:" in line:

@@ -1,8 +1,9 @@
 """``emdflowd`` — the optical-flow appliance daemon (console script and ``python -m``).
 
-Exit codes: 0 clean stop (signal, ``--frames`` reached, demo finished); 1 runtime failure
-(no usable OpenCL device, a crash); 2 configuration or usage error (the message names the
-file and key, the source or the port). The systemd unit does not restart on 2.
+Exit codes: 0 clean stop (signal, ``--frames`` reached, a recording's end, demo finished);
+1 runtime failure (no usable OpenCL device, a crash); 2 configuration or usage error (the
+message names the file and key, the source or the port). The systemd unit does not
+restart on 2.
 """
 
 from __future__ import annotations

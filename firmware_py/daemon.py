@@ -248,8 +248,9 @@ class SteadySubset:
 
 
 class SourceKeeper:
-    """Owns a frame source: opens it, reads it, and after a failure or end of stream
-    closes it and reopens it with exponential back-off. :meth:`read` never raises.
+    """Owns a frame source: opens it, reads it, and after a failure, or the end of a live
+    stream, closes it and reopens it with exponential back-off; a recording (a source that
+    is not live) ends instead (:attr:`ended`). :meth:`read` never raises.
 
     Parameters
     ----------
@@ -479,7 +480,8 @@ class Daemon:
             return emdflow.FlowEstimator(width, height, backend=backend, **self.config.engine.estimator_options())
         except ValueError as exc:  # a setting, not a failure: exit 2 (systemd does not restart)
             choice = os.environ.get("EMDFLOW_OPENCL_DEVICE")
-            where = f"EMDFLOW_OPENCL_DEVICE={choice!r}" if choice and backend == "opencl" else "[engine]"
+            by_choice = choice and backend == "opencl" and "OpenCL device" in str(exc)
+            where = f"EMDFLOW_OPENCL_DEVICE={choice!r}" if by_choice else "[engine]"
             raise ConfigError(f"{where}: {exc}") from None
 
     def _default_link(self, focal_length_px: float):
@@ -637,6 +639,10 @@ class Daemon:
                 self._process(frame, now_s)
             elif ended:  # a recording's last frame is processed: send what is queued, stop
                 self.link.service(host_us())
+                if self.stats.frames_in == 0:  # not one frame: nothing was flown, say so
+                    log.error("source %s ended before its first frame (a truncated file, or a codec "
+                              "this OpenCV cannot decode)", self.config.source.uri)
+                    self.exit_code = 2
                 break
             elif now_s - self._last_frame_host_s > self._gap_s(d.blind_after_s):
                 self._blind(now_s)

@@ -326,6 +326,16 @@ def test_bench_names_the_device_its_engine_runs_on(monkeypatch, capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith("emdflow bench: error: OpenCL engine:") and "no-such-device" in err
     assert len(err.splitlines()) == 1
+    # a compiler's multi-line log: still one line, with the compiler's error line in it
+    from emdflow import opencl_backend
+
+    monkeypatch.delenv("EMDFLOW_OPENCL_DEVICE")
+    real, token = opencl_backend.kernel_source, os.urandom(4).hex()
+    monkeypatch.setattr(opencl_backend, "kernel_source",
+                        lambda name: real(name) + (f"\n#error broken on purpose {token}\n" if name == "evd.cl" else ""))
+    assert bench.main(["--stages", "--sizes", "48x40"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"broken on purpose {token}" in err
 
 
 def test_bench_ratios_of_medians_and_per_round(monkeypatch):
@@ -633,6 +643,8 @@ def test_render_writes_the_frames_the_daemon_reads_back_exactly(tmp_path, capsys
         np.testing.assert_array_equal(frame.image, truth)
     assert main(["render", uri, "-o", str(tmp_path / "lossy.avi"), "--codec", "mjpg", "-q"]) == 0
     assert cv2.VideoCapture(str(tmp_path / "lossy.avi")).read()[1].ndim == 3
+    assert main(["render", uri, "-o", str(tmp_path / "lossy.mp4"), "-q"]) == 0  # mp4v, colour channels
+    assert cv2.VideoCapture(str(tmp_path / "lossy.mp4")).read()[1].ndim == 3
     assert main(["render", uri, "-o", str(out), "--size", "64x48", "--max-frames", "3", "-q"]) == 0
     assert main(["render", str(out), "-o", str(out)]) == 2
     _one_line_error(capsys, "would overwrite the input")
@@ -655,6 +667,27 @@ def test_devices_lists_what_runs_the_engine_and_marks_the_choice(capsys):
     marked = [row for row in rows if row.startswith("*")]
     assert len(marked) == 1 and f"  {chosen}  works" in marked[0]
     assert out[len(listed)].startswith(f"the engine runs on {chosen} ")
+
+
+def test_devices_a_driver_failing_at_run_time_is_one_failed_row(monkeypatch, capsys):
+    """A device whose kernels build but whose driver fails when the frame runs (pyopencl's
+    errors are not RuntimeErrors; such a GPU driver cannot be had here, so the run is made
+    to fail) is one failed row, not the end of the command."""
+    cl = pytest.importorskip("pyopencl")
+    from emdflow.tools import devices
+
+    real = devices._run_once
+
+    def flaky_driver(options, device):
+        if device == 0:
+            raise cl.MemoryError("clEnqueueNDRangeKernel failed: OUT_OF_RESOURCES")
+        return real(options, device)
+
+    monkeypatch.setattr(devices, "_run_once", flaky_driver)
+    checks, _chosen = devices.check_devices()
+    assert checks[0].error == "clEnqueueNDRangeKernel failed: OUT_OF_RESOURCES" and not checks[0].works
+    assert main(["devices"]) in (0, 1)  # (0 where another device works)
+    assert "0  " in capsys.readouterr().out
 
 
 def test_devices_says_why_no_device_runs_the_engine(monkeypatch, capsys):

@@ -205,7 +205,9 @@ def make_estimator(args, width: int, height: int):
     except ValueError as e:
         raise ToolError(f"engine options: {e}", 2) from None
     except (RuntimeError, ImportError) as e:
-        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        from emdflow.opencl_backend import error_summary
+
+        msg = error_summary(str(e)) or type(e).__name__
         raise ToolError(f"backend {backend}: {msg} (try --backend numpy)", 1) from None
 
 

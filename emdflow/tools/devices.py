@@ -35,9 +35,13 @@ class DeviceCheck:
         return self.error is None
 
     def reason(self) -> str:
-        """The first line that says why it failed (the compiler's ``error:`` line if any)."""
+        """The line that says why it failed (the compiler's ``error:`` line if any)."""
         lines = [line.strip() for line in (self.error or "").splitlines() if line.strip()]
         return next((line for line in lines if "error:" in line), lines[0] if lines else "")
+
+
+def _failure(exc: BaseException) -> str:
+    return str(exc) or type(exc).__name__
 
 
 def _run_once(model_options: dict, device) -> str:
@@ -63,13 +67,13 @@ def check_devices(model_options: dict | None = None) -> tuple[list[DeviceCheck],
         try:
             _run_once(options, index)
             error = None
-        except (RuntimeError, ValueError) as exc:
-            error = str(exc) or type(exc).__name__
+        except Exception as exc:  # noqa: BLE001 - a build error, or a driver failing at run time
+            error = _failure(exc)
         checks.append(DeviceCheck(index, name, error))
     try:
         chosen_name = _run_once(options, None)
-    except (RuntimeError, ValueError) as exc:
-        return checks, str(exc) or type(exc).__name__
+    except Exception as exc:  # noqa: BLE001 - (pyopencl's errors are not RuntimeErrors)
+        return checks, _failure(exc)
     chosen = next((c for c in checks if c.name == chosen_name and c.works), None)
     return checks, chosen if chosen is not None else DeviceCheck(-1, chosen_name, None)
 
@@ -102,9 +106,6 @@ def run(args) -> int:
         print(f"the engine runs on {chosen.name} (*: {how}; choose another with "
               "EMDFLOW_OPENCL_DEVICE=<index or name part>)")
         return 0
-    from emdflow.opencl_backend import _UNKNOWN_CPU_HINT
+    from emdflow.opencl_backend import error_summary
 
-    reason = DeviceCheck(-1, "", chosen).reason()
-    if _UNKNOWN_CPU_HINT in chosen and _UNKNOWN_CPU_HINT not in reason:
-        reason += f"; {_UNKNOWN_CPU_HINT}"
-    raise ToolError(f"the engine cannot run ({how}): {reason}", 1)
+    raise ToolError(f"the engine cannot run ({how}): {error_summary(chosen)}", 1)
