@@ -66,6 +66,27 @@ def test_video_source_resizes_and_loops(clip):
     assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
 
 
+def test_video_source_says_when_a_file_stops_short(clip, tmp_path, caplog):
+    """OpenCV reports a stream that stops decoding like its end: a file that yields far
+    fewer frames than its container declares gets a warning naming it; a whole file (read
+    to the end, also paced and looped) none."""
+    path, frames = clip
+    with open_source(f"video:{path}", loop=True) as source:
+        for _ in range(2 * len(frames) + 3):
+            source.read()
+    with open_source(f"video:{path}", realtime=True) as source:
+        _read_all(source)
+    assert "decoding stopped" not in caplog.text
+    cut = tmp_path / "cut.avi"
+    data = path.read_bytes()
+    cut.write_bytes(data[:len(data) * 6 // 10])
+    with open_source(f"video:{cut}") as source:
+        got = _read_all(source)
+    assert 0 < len(got) < len(frames) - 2
+    assert (f"cut.avi': decoding stopped after {len(got)} of the {len(frames)} frames it declares"
+            in caplog.text)
+
+
 def test_video_source_missing_file_named(tmp_path):
     with pytest.raises(SourceError, match="nothere.avi.*no such file"):
         open_source(f"video:{tmp_path}/nothere.avi")

@@ -25,6 +25,8 @@ log = logging.getLogger("emdflowd.video")
 
 # Codec pixel formats (FFmpeg's raw tags, as CAP_PROP_CODEC_PIXEL_FORMAT reports them) that
 # OpenCV hands out as one 8-bit channel with CONVERT_RGB off: FFmpeg's GRAY8.
+#: Frames a container's declared count may be off by without meaning a cut-off file.
+_DECLARED_SLACK = 2
 _GRAY8_TAGS = {cv2.VideoWriter_fourcc(*tag) for tag in ("Y800", "GREY", "Y8  ")}
 
 
@@ -122,6 +124,11 @@ class VideoFileSource(FrameSource):
             cap.set(cv2.CAP_PROP_CONVERT_RGB, 0)
         self._cap = cap
         self._index = 0
+        # what the container declares (approximate: a few frames either way), to tell a file
+        # cut off or corrupt partway from one read to its end
+        declared = cap.get(cv2.CAP_PROP_FRAME_COUNT)
+        self.declared_frames = int(declared) if declared > 0 and math.isfinite(declared) else None
+        self._decoded = 0  # frames decoded since the start of the file
         if self._pacer:
             self._pacer.restart()
 
@@ -140,11 +147,18 @@ class VideoFileSource(FrameSource):
     def _grab(self) -> np.ndarray | None:
         ok, image = self._cap.read()
         if ok:
+            self._decoded += 1
             return image
+        if self.declared_frames is not None and self._decoded < self.declared_frames - _DECLARED_SLACK:
+            # OpenCV reports a stream that stops decoding like its end: say which it looks like
+            log.warning("video file %r: decoding stopped after %d of the %d frames it declares "
+                        "(cut off or corrupt?)", self.path, self._decoded, self.declared_frames)
         if not self.loop:
             return None
         self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
+        self._decoded = 0
         ok, image = self._cap.read()
+        self._decoded += bool(ok)
         return image if ok else None
 
     def read(self) -> Frame | None:
