@@ -28,19 +28,41 @@ def _auto_upscale(width: int) -> int:
     return max(1, min(4, int(round(480 / max(1, width)))))
 
 
-def _add_flow_arguments(p: argparse.ArgumentParser) -> None:
-    from emdflow.tools import add_engine_arguments
-
+def _add_video_io_arguments(p: argparse.ArgumentParser, codec_help: str) -> None:
+    """INPUT, the output video and the frame options that ``flow`` and ``render`` share."""
     p.add_argument("input", metavar="INPUT",
                    help="video file, folder of images, one image, or synthetic:KEY=VALUE,... "
                         "(keys texture,u,v,frames,size,noise,contrast,drift,zoom,fps,seed)")
     p.add_argument("-o", "--output", required=True, metavar="VIDEO",
                    help=".avi/.mkv (lossless FFV1 by default) or .mp4 (mp4v)")
-    p.add_argument("--codec", choices=("ffv1", "mjpg", "mp4v"),
-                   help="ffv1: lossless, large; mjpg: lossy .avi that plays everywhere; mp4v: .mp4")
+    p.add_argument("--codec", choices=("ffv1", "mjpg", "mp4v"), help=codec_help)
     p.add_argument("--fps", type=float, help="frame rate (overrides the video's; default 30 for folders)")
     p.add_argument("--size", metavar="WxH", help="resize frames before processing (area interpolation)")
     p.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+
+
+def _open_input(args):
+    """``(frames, fps)`` of INPUT after the options ``flow`` and ``render`` share are checked
+    (a bad ``--fps`` or ``--size``, an output that would overwrite the input: ToolError 2)."""
+    from emdflow.tools import ToolError, check_positive
+    from emdflow.tools.video_io import open_frames, parse_size
+
+    check_positive("--fps", args.fps, "frames/s")
+    try:
+        size = parse_size(args.size) if args.size else None
+    except ValueError as e:
+        raise ToolError(f"--size: {e}", 2) from None
+    if args.input and args.output and Path(args.input).resolve() == Path(args.output).resolve():
+        raise ToolError(f"{args.output}: output would overwrite the input", 2)
+    source = open_frames(args.input, size=size, fps=args.fps, max_frames=args.max_frames)
+    return source, source.fps or 30.0
+
+
+def _add_flow_arguments(p: argparse.ArgumentParser) -> None:
+    from emdflow.tools import add_engine_arguments
+
+    _add_video_io_arguments(p, "ffv1: lossless, large; mjpg: lossy .avi that plays everywhere; mp4v: .mp4")
     p.add_argument("--max-flow", type=float, default=6.0, metavar="PX",
                    help="flow drawn fully saturated by the colour wheel, px/frame (default %(default)s)")
     p.add_argument("--upscale", type=int, metavar="N",
@@ -50,7 +72,6 @@ def _add_flow_arguments(p: argparse.ArgumentParser) -> None:
                         "(kept in memory until the end)")
     p.add_argument("--flo-dir", metavar="DIR", help="also write every frame's field as DIR/frame_NNNNNN.flo")
     p.add_argument("--snapshot", metavar="PNG", help="also save the last frame of the video as a PNG")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_engine_arguments(p)
 
 
@@ -62,14 +83,9 @@ def run_flow(args) -> int:
     from emdflow.tools import ToolError, check_positive, make_estimator, missing_folder, progress_bar
     from emdflow.tools.flo import write_flo
     from emdflow.tools.flowviz import render_flow_frame
-    from emdflow.tools.video_io import VideoWriter, open_frames, parse_size
+    from emdflow.tools.video_io import VideoWriter
 
-    check_positive("--fps", args.fps, "frames/s")
     check_positive("--max-flow", args.max_flow, "px/frame")
-    try:
-        size = parse_size(args.size) if args.size else None
-    except ValueError as e:
-        raise ToolError(f"--size: {e}", 2) from None
     for path in (args.npz, args.snapshot):
         if path and (problem := missing_folder(path)):
             raise ToolError(f"{path}: {problem}", 2)
@@ -81,10 +97,7 @@ def run_flow(args) -> int:
             ext = Path(args.snapshot).suffix
             why = f"OpenCV cannot write {ext} images" if ext else "no file ending to choose the image type"
             raise ToolError(f"--snapshot {args.snapshot}: {why}; use .png", 2)
-    if args.input and args.output and Path(args.input).resolve() == Path(args.output).resolve():
-        raise ToolError(f"{args.output}: output would overwrite the input", 2)
-    source = open_frames(args.input, size=size, fps=args.fps, max_frames=args.max_frames)
-    fps = source.fps or 30.0
+    source, fps = _open_input(args)
     writer = VideoWriter(args.output, fps, args.codec)
     flo_dir = None
     if args.flo_dir:
@@ -155,18 +168,10 @@ def run_render(args) -> int:
     """``emdflow render``: the input's gray frames, as the engine sees them, into a video
     (gray lossless FFV1 by default: a recording for the daemon's ``video:`` and
     ``depthai-replay:`` sources)."""
-    from emdflow.tools import ToolError, check_positive, progress_bar
-    from emdflow.tools.video_io import VideoWriter, codec_for, open_frames, parse_size
+    from emdflow.tools import ToolError, progress_bar
+    from emdflow.tools.video_io import VideoWriter, codec_for
 
-    check_positive("--fps", args.fps, "frames/s")
-    try:
-        size = parse_size(args.size) if args.size else None
-    except ValueError as e:
-        raise ToolError(f"--size: {e}", 2) from None
-    if Path(args.input).resolve() == Path(args.output).resolve():
-        raise ToolError(f"{args.output}: output would overwrite the input", 2)
-    source = open_frames(args.input, size=size, fps=args.fps, max_frames=args.max_frames)
-    fps = source.fps or 30.0
+    source, fps = _open_input(args)
     codec = codec_for(args.output, args.codec)  # (.mp4: mp4v, colour channels)
     writer = VideoWriter(args.output, fps, codec, gray=codec == "ffv1")
     try:
@@ -224,16 +229,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "engine sees them — gray, resized — into a video: gray lossless FFV1 "
                                    "in .mkv/.avi by default, a recording the daemon's video: and "
                                    "depthai-replay: sources read back exactly.")
-    p.add_argument("input", metavar="INPUT",
-                   help="video file, folder of images, one image, or synthetic:KEY=VALUE,... "
-                        "(keys texture,u,v,frames,size,noise,contrast,drift,zoom,fps,seed)")
-    p.add_argument("-o", "--output", required=True, metavar="VIDEO", help=".mkv/.avi (FFV1) or .mp4 (mp4v)")
-    p.add_argument("--codec", choices=("ffv1", "mjpg", "mp4v"),
-                   help="ffv1 (default for .mkv/.avi): gray, lossless; mjpg, mp4v: lossy, colour channels")
-    p.add_argument("--fps", type=float, help="frame rate (overrides the input's; default 30 for folders)")
-    p.add_argument("--size", metavar="WxH", help="resize frames (area interpolation)")
-    p.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    _add_video_io_arguments(p, "ffv1 (default for .mkv/.avi): gray, lossless; mjpg, mp4v: lossy, colour channels")
     p.set_defaults(run=run_render)
     p = sub.add_parser("devices", help="which OpenCL devices run the engine, and which one it takes",
                        description="Build the kernels and run one frame on every OpenCL device; say "

@@ -329,7 +329,7 @@ def _first_buildable(devices, build):
                 _SKIPPED.add(key)
             if new:
                 log.warning("OpenCL device %s cannot build the emdflow kernels; trying the next one (%s)",
-                            device.name.strip(), _first_error_line(str(failures[-1])))
+                            device.name.strip(), first_error_line(str(failures[-1])))
     if len(failures) == 1:
         raise failures[0]
     raise KernelBuildError(f"none of the {len(failures)} OpenCL devices could build the emdflow kernels:\n"
@@ -340,23 +340,20 @@ def error_summary(text: str) -> str:
     """One line for an OpenCL failure's message (a compiler log runs to many lines): its
     first line, the compiler's first ``error:`` line where that is another, and the fix
     where the message carries :data:`_UNKNOWN_CPU_HINT`."""
-    lines = [line.strip() for line in text.splitlines() if line.strip()]
-    if not lines:
-        return ""
-    line = lines[0]
-    error = next((x for x in lines if "error:" in x), None)
-    if error is not None and error not in line:
+    line = next((x.strip() for x in text.splitlines() if x.strip()), "")
+    error = first_error_line(text)
+    if error not in line:
         line = f"{line} ... {error}"
     if _UNKNOWN_CPU_HINT in text and _UNKNOWN_CPU_HINT not in line:
         line = f"{line}; {_UNKNOWN_CPU_HINT}"
     return line
 
 
-def _first_error_line(text: str) -> str:
-    for line in text.splitlines():
-        if "error:" in line:
-            return line.strip()
-    return text.splitlines()[0] if text else ""
+def first_error_line(text: str) -> str:
+    """The line of an OpenCL failure's message that says why: the compiler's first
+    ``error:`` line, else the first line ("" for none)."""
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return next((line for line in lines if "error:" in line), lines[0] if lines else "")
 
 
 def _device_with_program(device, layout: _Layout, debug: bool):

@@ -35,10 +35,11 @@ import emdflow
 from emdflow.cues import looming_cues
 
 from .angular import RecentIntervals
+from .clock import host_us
 from .config import Config, ConfigError
 from .links import FlowSample
 from .sdnotify import Notifier
-from .sources import Frame, FrameSource, SourceError, host_us, make_source
+from .sources import Frame, FrameSource, SourceError, make_source
 from .sources.base import _BAD_FRAME_LOG_S
 
 __all__ = ["Daemon", "SourceKeeper", "FrameMailbox", "SteadySubset", "Stats", "choose_threading"]

@@ -11,10 +11,7 @@ import errno
 import os
 import time
 
-
-def host_us() -> int:
-    """Same clock as the link's ``capture_host_us`` (monotonic, µs)."""
-    return time.monotonic_ns() // 1000
+from firmware_py.clock import host_us  # noqa: F401 - the clock the link tests stamp with
 
 
 class PtyPeer:

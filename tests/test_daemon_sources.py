@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from firmware_py.angular import focal_length_px_from_fov
-from firmware_py.sources import Frame, SourceError, host_us, make_source, open_source, parse_uri
+from firmware_py.clock import host_us
+from firmware_py.sources import Frame, SourceError, make_source, open_source, parse_uri
 from firmware_py.sources.v4l2 import V4L2Source, raw_to_gray
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # shared helpers
 from daemon_util import flight_frames, run_isolated_from_native_crashes, write_video  # noqa: E402

@@ -36,8 +36,9 @@ class DeviceCheck:
 
     def reason(self) -> str:
         """The line that says why it failed (the compiler's ``error:`` line if any)."""
-        lines = [line.strip() for line in (self.error or "").splitlines() if line.strip()]
-        return next((line for line in lines if "error:" in line), lines[0] if lines else "")
+        from emdflow.opencl_backend import first_error_line
+
+        return first_error_line(self.error or "")
 
 
 def _failure(exc: BaseException) -> str:

@@ -17,10 +17,10 @@ from __future__ import annotations
 
 import dataclasses
 
-from .base import Frame, FrameError, FrameSource, Pacer, SourceError, centre_crop, fit_to, host_us
+from .base import Frame, FrameError, FrameSource, Pacer, SourceError, centre_crop, fit_to
 
 __all__ = ["Frame", "FrameSource", "SourceError", "FrameError", "SourceSpec", "parse_uri", "open_source",
-           "make_source", "SCHEMES", "Pacer", "fit_to", "centre_crop", "host_us"]
+           "make_source", "SCHEMES", "Pacer", "fit_to", "centre_crop"]
 
 SCHEMES = ("v4l2", "depthai", "depthai-replay", "video", "synthetic")
 #: Schemes whose frames come from a camera (focal length must be configured).

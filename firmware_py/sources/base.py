@@ -14,10 +14,7 @@ import time
 import cv2
 import numpy as np
 
-from ..clock import host_us
-
-__all__ = ["Frame", "FrameSource", "SourceError", "FrameError", "Pacer", "fit_to", "centre_crop",
-           "host_us"]
+__all__ = ["Frame", "FrameSource", "SourceError", "FrameError", "Pacer", "fit_to", "centre_crop"]
 
 #: At most one "frame skipped" log line per this many seconds (the sources' unconvertible
 #: buffers, the daemon's frames of the wrong size).

@@ -19,7 +19,8 @@ import math
 
 import numpy as np
 
-from .base import Frame, FrameSource, SourceError, host_us
+from ..clock import host_us
+from .base import Frame, FrameSource, SourceError
 from .video import probe_video
 
 __all__ = ["DepthAISource", "MONO_SOCKETS"]

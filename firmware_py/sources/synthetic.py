@@ -28,7 +28,8 @@ import math
 
 import numpy as np
 
-from .base import Frame, FrameSource, Pacer, SourceError, host_us
+from ..clock import host_us
+from .base import Frame, FrameSource, Pacer, SourceError
 
 __all__ = ["SyntheticSource", "SYNTHETIC_DEFAULTS"]
 

@@ -23,7 +23,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .base import _BAD_FRAME_LOG_S, Frame, FrameError, FrameSource, SourceError, centre_crop, fit_to, host_us
+from ..clock import host_us
+from .base import _BAD_FRAME_LOG_S, Frame, FrameError, FrameSource, SourceError, centre_crop, fit_to
 
 __all__ = ["V4L2Source", "raw_to_gray", "PIXEL_FORMATS"]
 

@@ -17,16 +17,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .base import Frame, FrameSource, Pacer, SourceError, centre_crop, fit_to, host_us
+from ..clock import host_us
+from .base import Frame, FrameSource, Pacer, SourceError, centre_crop, fit_to
 
 __all__ = ["VideoFileSource", "probe_video", "is_gray_stream"]
 
 log = logging.getLogger("emdflowd.video")
 
-# Codec pixel formats (FFmpeg's raw tags, as CAP_PROP_CODEC_PIXEL_FORMAT reports them) that
-# OpenCV hands out as one 8-bit channel with CONVERT_RGB off: FFmpeg's GRAY8.
 #: Frames a container's declared count may be off by without meaning a cut-off file.
 _DECLARED_SLACK = 2
+# Codec pixel formats (FFmpeg's raw tags, as CAP_PROP_CODEC_PIXEL_FORMAT reports them) that
+# OpenCV hands out as one 8-bit channel with CONVERT_RGB off: FFmpeg's GRAY8.
 _GRAY8_TAGS = {cv2.VideoWriter_fourcc(*tag) for tag in ("Y800", "GREY", "Y8  ")}
 
 
