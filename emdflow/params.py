@@ -8,8 +8,9 @@ OpenCL kernels agree bit for bit:
 * receptor values are *box sums* of ``P`` over ``k × k`` blocks (never divided; below
   2**16 for ``k ≤ 15``);
 * the threshold θ is held in fixed point, ``θq = round(256 θ)``, and the ternary
-  threshold on a box-sum difference is ``(θq · k²) >> 8`` = ``floor(θ · k²)``, compared
-  with ``>``, which is exactly "mean change > θ gray levels";
+  threshold on a box-sum difference is ``(θq · k²) >> 8`` = ``floor(θ̂ · k²)`` with
+  ``θ̂ = θq / 256`` (θ rounded to a multiple of 1/256 gray level: θ itself for the default
+  5.0), compared with ``>``, which is exactly "mean change > θ̂ gray levels";
 * the gradient orientation used by the summary is binned with integer cross products
   against a table of boundary directions.
 
@@ -306,7 +307,9 @@ class EngineParams:
         return int(round(float(theta) * 256))
 
     def box_threshold(self, k: int, theta_q: int | None = None) -> int:
-        """Integer threshold on a k×k box-sum difference: ``(θq · k²) >> 8`` = ``floor(θ · k²)``."""
+        """Integer threshold on a k×k box-sum difference: ``(θq · k²) >> 8`` = ``floor(θ̂ · k²)``,
+        ``θ̂ = θq / 256``, θ rounded to a multiple of 1/256: ``floor(θ · k²)`` itself for the
+        default 5.0, otherwise possibly one box-sum unit away (θ = 0.1, k = 13: 17, not 16)."""
         q = self.threshold_q(self.threshold) if theta_q is None else int(theta_q)
         return (q * k * k) >> 8
 

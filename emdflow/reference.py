@@ -147,8 +147,9 @@ def gain_compensated_change(p_now: np.ndarray, p_before: np.ndarray, k: int, rat
 def ternary_states(change: np.ndarray, box_threshold: int) -> np.ndarray:
     """Ternary template-model states (paper §2): +1 if ``change > T``, −1 if ``< −T``, else 0.
 
-    ``box_threshold`` is ``floor(θ · k²)`` (see :meth:`EngineParams.box_threshold`),
-    so the test is exactly "mean receptor change > θ gray levels".
+    ``box_threshold`` is ``floor(θ̂ · k²)`` with ``θ̂`` the fixed-point θ (see
+    :meth:`EngineParams.box_threshold`), so the test is exactly "mean receptor change > θ̂
+    gray levels".
     """
     return ((change > box_threshold).astype(np.int8) - (change < -box_threshold).astype(np.int8))
 

@@ -855,6 +855,33 @@ def _curvature_sigma(weights: np.ndarray, prof: np.ndarray, step: float) -> floa
     return 1.0 / math.sqrt(-2.0 * a) if a < -0.5 / half ** 2 else 2.0 * half
 
 
+def _log_likelihood_at(field: FlowField, flows, options: SummaryOptions | None = None):
+    """The summary's log-likelihood of ``field``'s detections at each global flow ``(U, V)``
+    of ``flows`` (px/frame; each row's β read at that flow's own direction), or None when
+    the frame gets no likelihood fit. For diagnosis (``calibrate_summary evaluate``):
+    whether a wrong answer is a search that missed a better flow, or the table preferring
+    the wrong one."""
+    opts = options or _DEFAULT_OPTIONS
+    models = _model_for(field.params, opts) if opts.likelihood else None
+    if models is None or not field.ready:
+        return None
+    by_class, folded = _pick_model(models, field)
+    full = field.histogram
+    model = by_class if by_class is not None and by_class.hist_bins == full.shape[-1] else folded
+    hist = full if model.classes > 1 or full.shape[-1] == ORIENTATION_BINS else (
+        full.reshape(full.shape[0], full.shape[1], -1, ORIENTATION_BINS).sum(axis=2))
+    curves, _, active, _ = _row_curves(model, hist, opts.row_exponent)
+    if active < 2:
+        return None
+    point = (np.zeros(1), np.zeros(1), 1, np.ones(1, np.float32), np.array([_PAD]))
+    values = []
+    for U, V in flows:
+        d = round(math.atan2(V, U) / _DIR_STEP) % _DIRECTIONS
+        log_s = math.log(max(math.hypot(U, V), model.speed_floor))
+        values.append(float(_loglik_grid(model, curves, log_s, d, point)[0, 0]))
+    return values
+
+
 # ---------------------------------------------------------------------------------------
 def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> FlowSummary:
     """Global image flow of a :class:`FlowField` with a quality that says how far to trust it.

@@ -136,6 +136,8 @@ def main(argv: list[str] | None = None) -> int:
         log.error("%s", exc)
         return EXIT_CONFIG
     setup_logging(config.daemon.log_level)
+    for note in config.cautions():
+        log.warning("%s", note)
     return run_daemon(config)
 
 

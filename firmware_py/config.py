@@ -181,6 +181,19 @@ class Config:
                 f"--protocol): {_AUTOPILOT_NAMES[autopilot]} takes optical flow over "
                 f"{' or '.join(speaks)} only; leave protocol out or set it to {speaks[0]!r}")
 
+    def cautions(self) -> list[str]:
+        """Settings that are valid but risky for the configured autopilot (logged as
+        warnings at start-up, see docs/spec/autopilot-links.md and the README's PX4 notes)."""
+        where = self.path or "configuration"
+        notes = []
+        if self.link.ground_distance_m is not None and self.link_autopilot() in ("px4", "both"):
+            notes.append(
+                f"{where}: [link] ground_distance_m = {self.link.ground_distance_m:g} with PX4: EKF2 takes "
+                "it as a rangefinder reading whenever no distance sensor has reported for 1 s, a false "
+                "height for a vehicle whose height changes; leave it out unless the camera's height "
+                "cannot change")
+        return notes
+
     def focal_length_px(self, width: int, default: float | None) -> float:
         """Focal length at the processing width, px: explicit value, else from the field of
         view, else the source's documented default; ConfigError when none applies."""

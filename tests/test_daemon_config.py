@@ -230,3 +230,16 @@ def test_autopilot_and_protocol_that_fit_together(tmp_path):
     config.set("optics", "focal_length_px", 300.0)
     config.validate()
     assert config.focal_length_px(320, None) == 300.0
+
+
+def test_ground_distance_with_px4_is_a_caution(tmp_path):
+    """PX4's EKF2 takes the flow message's distance as a rangefinder reading when no
+    distance sensor reports: a fixed ground distance is valid but worth a warning there,
+    and only there."""
+    for autopilot, warned in (("px4", True), ("both", True), ("ardupilot", False), ("inav", False)):
+        config = load_config(_write(tmp_path, f"[link]\nautopilot = '{autopilot}'\nground_distance_m = 0.3\n"))
+        notes = config.cautions()
+        assert bool(notes) == warned, autopilot
+        if warned:
+            assert "ground_distance_m = 0.3" in notes[0] and "rangefinder" in notes[0]
+    assert load_config(_write(tmp_path, "[link]\nautopilot = 'px4'\n")).cautions() == []

@@ -92,7 +92,10 @@ def test_keepalive_starts_before_the_autopilot_times_out(tmp_path, autopilot, bl
 def test_slow_engine_gets_real_flow_through():
     """0.3 s per frame (more than blind_after_s): the link judges blindness from the last
     submit, so no keep-alive comes between frames and the reports keep their quality."""
-    config = _config("synthetic:u=2,v=1", settings={("source", "width"): 96, ("source", "height"): 72})
+    # the synthetic source stamps its frames 10 ms apart however slowly they are made: one
+    # report per frame needs 100 Hz (above PX4's default cap of 50 Hz, see test_links_timing)
+    config = _config("synthetic:u=2,v=1", settings={("source", "width"): 96, ("source", "height"): 72,
+                                                    ("link", "message_rate_hz"): 100.0})
 
     def slow(width, height):
         real = emdflow.FlowEstimator(width, height, backend=config.engine.backend,

@@ -77,7 +77,37 @@ class FlightController:
                 rate = (m.integrated_x / dt, m.integrated_y / dt) if dt > 0 else None
                 self.messages.append({"at": now_us, "quality": m.quality,
                                       "used": m.quality > 0 and rate is not None, "rate": rate,
-                                      "integration_time_us": m.integration_time_us, "time_usec": m.time_usec})
+                                      "integration_time_us": m.integration_time_us, "time_usec": m.time_usec,
+                                      "integrated": (m.integrated_x, m.integrated_y)})
+
+    def px4_published(self, sens_flow_rate_hz: float = 70.0) -> list[dict]:
+        """What PX4's sensors module (``VehicleOpticalFlow``) makes of the OPTICAL_FLOW_RAD
+        messages: it adds messages up until their integration time reaches
+        1 / SENS_FLOW_RATE, publishes the sums with the *mean* quality, and starts afresh
+        after a gap of 2 × a message's integration time, or when a good message follows
+        only quality-0 ones (timestamps: the arrival times, as PX4's MAVLink receiver sets
+        them). EKF2 fuses a published sample of quality ≥ EKF2_OF_QMIN (default 1)."""
+        published, acc, last = [], None, None
+        for m in self.messages:
+            span = m["integration_time_us"]
+            if acc is not None and (m["at"] >= last + 2 * span or (m["quality"] > 0 and acc["qsum"] == 0)):
+                acc = None
+            last = m["at"]
+            if acc is None:
+                acc = {"x": 0.0, "y": 0.0, "span": 0, "qsum": 0, "n": 0}
+            acc["x"] += m["integrated"][0]
+            acc["y"] += m["integrated"][1]
+            acc["span"] += span
+            acc["qsum"] += m["quality"]
+            acc["n"] += 1
+            if acc["span"] >= 1e6 / sens_flow_rate_hz:
+                quality = acc["qsum"] // acc["n"]
+                dt = acc["span"] / 1e6
+                published.append({"at": m["at"], "quality": quality, "used": quality >= 1 and dt > 0,
+                                  "rate": (acc["x"] / dt, acc["y"] / dt) if dt > 0 else None,
+                                  "messages": acc["n"]})
+                acc = None
+        return published
 
     def used(self) -> list[dict]:
         return [m for m in self.messages if m["used"]]
@@ -272,3 +302,40 @@ def test_extra_values_follow_their_frames_flow_message(peer):
             named += 1
             assert last_flow_ms == m.time_boot_ms, "a frame's extras went out before its flow message"
     assert named >= 4 * 2
+
+
+def test_px4_never_fuses_a_quality0_report_merged_with_a_good_one(peer):
+    """PX4 merges OPTICAL_FLOW_RAD messages that come faster than SENS_FLOW_RATE (default
+    70 Hz) and publishes the mean of their qualities: a good report merged with a quality-0
+    one (a keep-alive, the report that closes a blind frame's interval) would be fused with
+    an angle that misses motion. So the PX4 message sets go at most 50 Hz by default (every
+    report ≥ 1/70 s, whatever the camera's frame rate), and PX4 fuses only true rates."""
+    link = make_link(peer, "px4")   # default rate: 921600 baud would carry 100 Hz
+    fc = FlightController(peer, "px4")
+    start = host_us()
+    # 100 fps with a 120 ms stall and a 400 ms blind period, then 75 fps (13.3 ms frames);
+    # at 100 Hz the blind period's first keep-alive met a pending good report (an odd
+    # count of reports before it), and PX4 fused 0.077 and 0.032 rad/s at quality 100
+    intervals = [10_000] * 29 + [120_000] + [10_000] * 29 + [400_000] + [10_000] * 30 + [13_333] * 30
+    frames = stream(start, intervals, engine_us=3_000, flow_px_per_s=(0.0, 100.0))
+    try:
+        drive(link, fc, frames, start_us=start, end_us=frames[-1][0] + 1_000_000)
+    finally:
+        link.close()
+    assert link.message_rate_hz == 50
+    assert all(m["integration_time_us"] >= 1e6 / 70 for m in fc.messages if m["quality"] > 0)
+    published = fc.px4_published()
+    fused = [m for m in published if m["used"]]
+    assert len(fused) >= 50
+    for m in fused:
+        assert m["rate"][1] == pytest.approx(1.0, rel=1e-4), m
+    assert any(m["quality"] == 0 for m in published)   # the blind period reached PX4 as such
+
+
+def test_px4_rate_above_sens_flow_rate_is_warned(caplog):
+    caplog.set_level(logging.WARNING)
+    link = open_link(LinkConfig(port="/nonexistent/ttyX", baud=921600, autopilot="px4", focal_length_px=F,
+                                message_rate_hz=100))
+    link.close()
+    assert link.message_rate_hz == 100
+    assert any("SENS_FLOW_RATE" in r.getMessage() for r in caplog.records)

@@ -607,3 +607,26 @@ def test_evaluation_flights_take_the_ground(monkeypatch, tmp_path, capsys):
         cs.main(["evaluate", "--textures", "moon,no-such-ground"])
     err = capsys.readouterr().err
     assert "--textures" in err and "no-such-ground" in err
+
+
+def test_evaluation_tells_a_search_miss_from_a_table_that_prefers_the_wrong_answer():
+    """``score``'s diagnosis of frames more than 3° off: on detections drawn from the table
+    at the true flow the truth is the more likely flow, so an answer 10° off counts as the
+    search's miss; detections drawn at the answer make the table prefer it over the truth."""
+    from emdflow.summary import FlowSummary, _log_likelihood_at
+    from emdflow.tools.calibrate_summary import _print_search_check
+
+    truth = (4.0, 1.3)
+    a = math.atan2(truth[1], truth[0]) + math.radians(10.0)
+    off = (math.hypot(*truth) * math.cos(a), math.hypot(*truth) * math.sin(a))
+    at_truth, at_off = _field(model_histogram(truth)), _field(model_histogram(off))
+    l_truth, l_off = _log_likelihood_at(at_truth, [truth, off])
+    assert l_truth > l_off
+    assert _log_likelihood_at(_field(np.zeros_like(model_histogram(truth))), [truth]) is None
+    answer = FlowSummary(off[0], off[1], 200)
+    err = np.array([[0.17, 10.0], [0.17, 10.0], [0.0, 0.5]])
+    lines = []
+    _print_search_check([at_truth, at_off, at_truth], [answer, answer, FlowSummary(*truth, 200)],
+                        np.array([truth, truth, truth]), err, out=lines.append)
+    assert len(lines) == 1 and "more than 3 deg off: 2;" in lines[0]
+    assert "more likely than the answer in 1 (50 %" in lines[0] and "less likely in 1 " in lines[0]

@@ -656,6 +656,7 @@ def score(data, options=None, out=print):
         _print_flight_bias(sums, flows, int(data["flight_frames"]), out)
     if "texture" in data:
         _print_texture_speed(sums, flows, np.asarray(data["texture"]), out)
+    _print_search_check(fields, sums, flows, err, options, out)
     rated = qual > 0
     if rated.sum() > 2:
         from scipy.stats import spearmanr
@@ -682,6 +683,28 @@ def _print_texture_speed(sums, flows, textures, out=print):
             m = at & (textures == n)
             cells.append(np.median(read[m]) if m.any() else math.nan)
         out(f"    {sp:5.4g} | " + " | ".join(f"{c:7.3f}" for c in cells))
+
+
+def _print_search_check(fields, sums, flows, err, options=None, out=print, limit_deg: float = 3.0):
+    """Of the frames whose direction is more than ``limit_deg`` off, how many the search
+    failed (the true flow explains the detections better than the answer: a search
+    problem) and how many the model failed (the table prefers the wrong answer: what a
+    better search cannot fix)."""
+    from emdflow.summary import _log_likelihood_at
+
+    wrong = missed = 0
+    for field, s, (fu, fv), e in zip(fields, sums, flows, err):
+        if s.quality == 0 or s.static or e[1] <= limit_deg:
+            continue
+        values = _log_likelihood_at(field, [(fu, fv), (s.flow_x, s.flow_y)], options)
+        if values is None:
+            continue
+        wrong += 1
+        missed += values[0] > values[1]
+    if wrong:
+        out(f"  frames more than {limit_deg:g} deg off: {wrong}; the true flow is more likely than the "
+            f"answer in {missed} ({missed / wrong * 100:.0f} %: the search missed it), less likely in "
+            f"{wrong - missed} (the table prefers the wrong answer)")
 
 
 def _print_flight_bias(sums, flows, per_flight: int, out=print):

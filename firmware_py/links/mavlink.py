@@ -7,12 +7,13 @@ Per report (one integrated interval, see :mod:`firmware_py.angular`):
 OPTICAL_FLOW (ArduPilot, FLOW_TYPE=5)
     ``flow_rate_x/y`` = integrated angle / integration time, rad/s (firmware with PR #30663);
     ``flow_x/y`` = 10 × Σu' / Σv' deci-pixels since the previous message, in the *same* axes
-    (older ArduPilot integrates these), with the fractional remainder carried;
+    (older ArduPilot reads only these, see the README), with the fractional remainder carried;
     ``flow_comp_m_x/y`` = 0 (ArduPilot ignores them); ``ground_distance`` = configured range
     or -1; ``time_usec`` = capture timestamp of the newest frame; ``quality``; ``sensor_id``.
 OPTICAL_FLOW_RAD (PX4)
     ``integration_time_us`` = capture-timestamp span of the interval; ``integrated_x/y`` rad;
-    gyro fields NaN (no IMU: PX4 integrates its own gyro over the same interval);
+    gyro fields NaN (no IMU: PX4 integrates its own gyro over an interval of the same length,
+    ending at the message's arrival);
     ``distance`` = configured range or -1; ``temperature`` 0; ``time_delta_distance_us`` 0.
 HEARTBEAT
     ``MAV_TYPE_ONBOARD_CONTROLLER``, ``MAV_AUTOPILOT_INVALID``, ``MAV_STATE_ACTIVE``, once on
@@ -49,6 +50,14 @@ MESSAGE_SETS = {
     "px4": ("OPTICAL_FLOW_RAD",),
     "both": ("OPTICAL_FLOW", "OPTICAL_FLOW_RAD"),
 }
+
+#: PX4's sensors module (``VehicleOpticalFlow``) adds up OPTICAL_FLOW_RAD messages until
+#: their integration time reaches 1 / SENS_FLOW_RATE (default 70 Hz) and publishes the
+#: *mean* quality: a good report merged with a quality-0 one would be fused with an angle
+#: that misses motion. At ≤ 50 Hz every report spans ≥ 1/70 s whatever the frame rate
+#: (reports end on frame boundaries up to a quarter frame early), so none is merged.
+PX4_SENS_FLOW_RATE_HZ = 70.0
+PX4_RATE_CAP_HZ = 50.0
 
 HEARTBEAT_TYPE = mavlink2.MAV_TYPE_ONBOARD_CONTROLLER  # 18: no MAV_TYPE for a flow sensor
 
@@ -129,7 +138,17 @@ class MavlinkLink(FlowLink):
         return WIRE_BYTES["HEARTBEAT"] * self.config.heartbeat_rate_hz + extras
 
     def _default_rate_cap(self) -> float:
-        return 100.0
+        return PX4_RATE_CAP_HZ if "OPTICAL_FLOW_RAD" in self.message_set else 100.0
+
+    def _choose_rate(self) -> float:
+        rate = super()._choose_rate()
+        if "OPTICAL_FLOW_RAD" in self.message_set and rate > PX4_RATE_CAP_HZ:
+            log.warning("%s on %s: %.0f Hz OPTICAL_FLOW_RAD: PX4 merges messages that come faster than "
+                        "SENS_FLOW_RATE (default %.0f Hz) and averages their qualities, so a quality-0 "
+                        "report can be fused with a good one's; keep message_rate_hz <= %.0f or raise "
+                        "SENS_FLOW_RATE above it", self.protocol, self.config.port, rate,
+                        PX4_SENS_FLOW_RATE_HZ, PX4_RATE_CAP_HZ)
+        return rate
 
     def _messages_per_report(self) -> int:
         return len(self.message_set)
