@@ -870,8 +870,8 @@ def _log_likelihood_at(field: FlowField, flows, options: SummaryOptions | None =
     model = by_class if by_class is not None and by_class.hist_bins == full.shape[-1] else folded
     hist = full if model.classes > 1 or full.shape[-1] == ORIENTATION_BINS else (
         full.reshape(full.shape[0], full.shape[1], -1, ORIENTATION_BINS).sum(axis=2))
-    curves, _, active, _ = _row_curves(model, hist, opts.row_exponent)
-    if active < 2:
+    curves, count, active, _ = _row_curves(model, hist, opts.row_exponent)
+    if active < 2 or count < opts.min_detections:  # summarize() keeps the IoC fit there
         return None
     point = (np.zeros(1), np.zeros(1), 1, np.ones(1, np.float32), np.array([_PAD]))
     values = []

@@ -94,10 +94,14 @@ def test_ardupilot_optical_flow_matches_the_motion(flight_file, config_file, sch
 
 
 def test_px4_optical_flow_rad_matches_the_motion(flight_file, config_file):
-    data, _ = _run(f"video:{flight_file}", "px4", config_file)
+    # a fixed ground distance is sent, with a warning: PX4's EKF2 takes it as a rangefinder
+    config_file.write_text(config_file.read_text() + "[link]\nground_distance_m = 0.5\n")
+    data, result = _run(f"video:{flight_file}", "px4", config_file)
+    assert "ground_distance_m = 0.5 with PX4" in result.stderr
     msgs = parse_mavlink(data)
     _heartbeats_ok(msgs)
     assert not [m for m in msgs if m.get_type() == "OPTICAL_FLOW"]
+    assert {m.distance for m in msgs if m.get_type() == "OPTICAL_FLOW_RAD"} == {0.5}
     good = _good(msgs, "OPTICAL_FLOW_RAD")
     assert len(good) >= FRAMES // 2
     for m in good:  # integration time comes from the file's clock, not the wall clock

@@ -292,9 +292,9 @@ def test_stochastic_calibration_textures():
 def test_thin_lines_need_the_prefilter(speed):
     """The spec's motion templates come from edges (§2): a line thinner than a receptor
     crosses it within one frame and leaves mixed-polarity patterns (``[p 0 / −p p]``) that
-    no template accepts. The default prefilter spreads a 1 px line over several pixels, and
-    it is seen at its speed; without the prefilter it is not seen at all (README, "Notes on
-    the spec and the paper")."""
+    no template accepts, sharp ones included. The default prefilter spreads a 1 px line over
+    several pixels, and it is seen at its speed; without the prefilter it is not seen at all
+    (README, "Notes on the spec and the paper")."""
     w, h = 120, 30
 
     def line(t):
@@ -302,8 +302,9 @@ def test_thin_lines_need_the_prefilter(speed):
         frame[:, 20 + speed * t] = 200
         return frame
 
-    for prefilter_size, seen in ((11, True), (0, False)):
-        est = emdflow.FlowEstimator(w, h, backend="numpy", prefilter_size=prefilter_size)
+    for prefilter_size, sharp, seen in ((11, False, True), (0, False, False), (0, True, False)):
+        est = emdflow.FlowEstimator(w, h, backend="numpy", prefilter_size=prefilter_size,
+                                    sharp_templates=sharp)
         u = np.concatenate([est.update(line(t)).u.ravel() for t in range(8)])
         u = u[np.isfinite(u)]
         if seen:

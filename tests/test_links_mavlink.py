@@ -102,10 +102,10 @@ def test_message_set_rate_and_byte_budget(peer, autopilot, expected, absent, bau
 def test_rate_chosen_from_baud():
     assert make_link_no_port(autopilot="ardupilot", baud=57600).message_rate_hz == 74
     assert make_link_no_port(autopilot="both", baud=57600).message_rate_hz == 33
-    # OPTICAL_FLOW_RAD at most 50 Hz by default: PX4 merges what comes faster than its
+    # OPTICAL_FLOW_RAD at most 70 Hz by default: PX4 merges what comes faster than its
     # SENS_FLOW_RATE (70 Hz) and averages the qualities (test_links_timing)
-    assert make_link_no_port(autopilot="both", baud=115200).message_rate_hz == 50
-    assert make_link_no_port(autopilot="px4", baud=921600).message_rate_hz == 50
+    assert make_link_no_port(autopilot="both", baud=115200).message_rate_hz == 67
+    assert make_link_no_port(autopilot="px4", baud=921600).message_rate_hz == 70
     assert make_link_no_port(autopilot="ardupilot", baud=921600).message_rate_hz == 100
     assert make_link_no_port(autopilot="px4", baud=921600, message_rate_hz=25).message_rate_hz == 25
 
@@ -236,7 +236,7 @@ def test_blind_quality_zero_frames_from_the_daemon(peer):
     sink = bytearray()
     try:
         feeder = FrameFeeder(link, fps=FPS)
-        feeder.frames(21, flow_y=1.0, peer=peer, sink=sink)  # 10 reports of 2 frames at 50 Hz
+        feeder.frames(21, flow_y=1.0, peer=peer, sink=sink)  # 10 reports of 2 frames (≥ 1/70 s)
         t = feeder.t_us + 250_000
         for _ in range(10):
             now = host_us()

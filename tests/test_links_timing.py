@@ -304,38 +304,70 @@ def test_extra_values_follow_their_frames_flow_message(peer):
     assert named >= 4 * 2
 
 
-def test_px4_never_fuses_a_quality0_report_merged_with_a_good_one(peer):
-    """PX4 merges OPTICAL_FLOW_RAD messages that come faster than SENS_FLOW_RATE (default
-    70 Hz) and publishes the mean of their qualities: a good report merged with a quality-0
-    one (a keep-alive, the report that closes a blind frame's interval) would be fused with
-    an angle that misses motion. So the PX4 message sets go at most 50 Hz by default (every
-    report ≥ 1/70 s, whatever the camera's frame rate), and PX4 fuses only true rates."""
-    link = make_link(peer, "px4")   # default rate: 921600 baud would carry 100 Hz
+def _px4_flight(peer, intervals, **kw):
+    """Fly ``intervals`` (µs) at 1 rad/s to a PX4 link, then go blind for 1 s; PX4's view."""
+    link = make_link(peer, "px4", **kw)
     fc = FlightController(peer, "px4")
     start = host_us()
-    # 100 fps with a 120 ms stall and a 400 ms blind period, then 75 fps (13.3 ms frames);
-    # at 100 Hz the blind period's first keep-alive met a pending good report (an odd
-    # count of reports before it), and PX4 fused 0.077 and 0.032 rad/s at quality 100
-    intervals = [10_000] * 29 + [120_000] + [10_000] * 29 + [400_000] + [10_000] * 30 + [13_333] * 30
     frames = stream(start, intervals, engine_us=3_000, flow_px_per_s=(0.0, 100.0))
     try:
         drive(link, fc, frames, start_us=start, end_us=frames[-1][0] + 1_000_000)
     finally:
         link.close()
-    assert link.message_rate_hz == 50
+    return link, fc
+
+
+PX4_FLIGHTS = {
+    # 100 fps with a stall and a blind period; at 100 Hz the blind period's first keep-alive
+    # met a pending good report (an odd count of reports before it) and PX4 fused 0.077 and
+    # 0.032 rad/s at quality 100
+    "100fps": [10_000] * 29 + [120_000] + [10_000] * 29 + [400_000] + [10_000] * 30,
+    "75fps": [13_333] * 41,
+    # 30 fps with one early frame (a report at 0.75 of a frame would span < 1/70 s) ...
+    "30fps-early-frame": [33_333] * 20 + [12_500] + [33_333] * 3,
+    # ... and a camera that speeds up from 30 to 80 fps
+    "30-to-80fps": [33_333] * 20 + [12_500] * 7,
+}
+
+
+@pytest.mark.parametrize("flight", list(PX4_FLIGHTS))
+@pytest.mark.parametrize("rate", [None, 100.0])
+def test_px4_never_fuses_a_quality0_report_merged_with_a_good_one(peer, flight, rate):
+    """PX4 merges OPTICAL_FLOW_RAD messages whose integration time is below
+    1/SENS_FLOW_RATE (default 70 Hz) and publishes the mean of their qualities: a good
+    report merged with a quality-0 one (a keep-alive, the report that closes a blind frame's
+    interval) would be fused with an angle that misses motion. Every good report spans at
+    least 1/70 s, at any frame rate and any message_rate_hz, so PX4 fuses only true rates."""
+    kw = {} if rate is None else {"message_rate_hz": rate}
+    link, fc = _px4_flight(peer, PX4_FLIGHTS[flight], **kw)
+    assert link.message_rate_hz == (70 if rate is None else rate)
     assert all(m["integration_time_us"] >= 1e6 / 70 for m in fc.messages if m["quality"] > 0)
     published = fc.px4_published()
     fused = [m for m in published if m["used"]]
-    assert len(fused) >= 50
+    assert len(fused) >= 8
     for m in fused:
         assert m["rate"][1] == pytest.approx(1.0, rel=1e-4), m
-    assert any(m["quality"] == 0 for m in published)   # the blind period reached PX4 as such
+    assert published[-1]["quality"] == 0   # the blind second reached PX4 as such
+
+
+def test_the_px4_model_catches_merged_quality0_reports(peer, monkeypatch):
+    """The control: without the minimum span, 100 Hz reports are merged by PX4 and the
+    model sees good reports fused with the blind period's first quality-0 one."""
+    from firmware_py.links import mavlink
+
+    monkeypatch.setattr(mavlink, "PX4_MIN_REPORT_SPAN_US", 0)
+    _, fc = _px4_flight(peer, PX4_FLIGHTS["100fps"], message_rate_hz=100.0)
+    wrong = [m for m in fc.px4_published() if m["used"] and m["rate"][1] != pytest.approx(1.0, rel=1e-4)]
+    assert wrong and all(m["rate"][1] < 0.1 and m["messages"] == 2 for m in wrong)
 
 
 def test_px4_rate_above_sens_flow_rate_is_warned(caplog):
-    caplog.set_level(logging.WARNING)
-    link = open_link(LinkConfig(port="/nonexistent/ttyX", baud=921600, autopilot="px4", focal_length_px=F,
-                                message_rate_hz=100))
-    link.close()
-    assert link.message_rate_hz == 100
-    assert any("SENS_FLOW_RATE" in r.getMessage() for r in caplog.records)
+    caplog.set_level(logging.WARNING, logger="firmware_py.links.mavlink")
+    for autopilot, rate, warned in (("px4", 100, True), ("both", 100, True), ("px4", 70, False),
+                                    ("ardupilot", 100, False)):
+        caplog.clear()
+        link = open_link(LinkConfig(port=None, baud=921600, autopilot=autopilot, focal_length_px=F,
+                                    message_rate_hz=rate))
+        link.close()
+        assert link.message_rate_hz == rate
+        assert any("SENS_FLOW_RATE" in r.getMessage() for r in caplog.records) == warned, autopilot

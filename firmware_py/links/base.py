@@ -119,7 +119,9 @@ class LinkConfig:
         ``sensor_id`` field of the flow messages.
     message_rate_hz : float or None
         Flow messages per second; None chooses the highest rate keeping the line ≤ 60 % busy,
-        capped at 100 Hz (MAVLink) or 50 Hz (MSP). Never more than one message per frame.
+        capped at 100 Hz (OPTICAL_FLOW alone), 70 Hz (with OPTICAL_FLOW_RAD, whose reports
+        also span at least 1/70 s: PX4's SENS_FLOW_RATE) or 50 Hz (MSP). Never more than one
+        message per frame.
     heartbeat_rate_hz : float
         MAVLink HEARTBEAT rate, Hz (also while the camera is blind).
     ground_distance_m : float or None
@@ -267,6 +269,10 @@ class FlowLink:
     def _reserved_bytes_per_s(self) -> float:
         return 0.0
 
+    def _min_report_span_us(self) -> float:
+        """Shortest capture span a good report may cover, µs (0: any; see the MAVLink link)."""
+        return 0.0
+
     def _queue_capacity(self) -> int:
         # About 0.1 s of reports (plus room for a heartbeat) before the oldest goes.
         return max(4, int(math.ceil(self.message_rate_hz * 0.1)) * self._messages_per_report() + 2)
@@ -387,7 +393,8 @@ class FlowLink:
             # Emit on frame boundaries: a quarter-frame tolerance keeps e.g. 50 Hz at 100 fps
             # from slipping to every third frame on jitter.
             tolerance = 0.25 * (integ.nominal_interval_us or 0.0)
-            if integ.elapsed_us > 0 and integ.elapsed_us >= self.period_us - tolerance:
+            due = max(self.period_us - tolerance, self._min_report_span_us())
+            if integ.elapsed_us > 0 and integ.elapsed_us >= due:
                 interval = integ.take()
                 if self._keepalive_in_interval:
                     # The autopilot's interval began at the keep-alive, these counts earlier.

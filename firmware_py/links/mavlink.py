@@ -51,13 +51,14 @@ MESSAGE_SETS = {
     "both": ("OPTICAL_FLOW", "OPTICAL_FLOW_RAD"),
 }
 
-#: PX4's sensors module (``VehicleOpticalFlow``) adds up OPTICAL_FLOW_RAD messages until
-#: their integration time reaches 1 / SENS_FLOW_RATE (default 70 Hz) and publishes the
-#: *mean* quality: a good report merged with a quality-0 one would be fused with an angle
-#: that misses motion. At ≤ 50 Hz every report spans ≥ 1/70 s whatever the frame rate
-#: (reports end on frame boundaries up to a quarter frame early), so none is merged.
+#: PX4's sensors module (``VehicleOpticalFlow``, before its 2026 accumulator) adds up
+#: OPTICAL_FLOW_RAD messages until their integration time reaches 1 / SENS_FLOW_RATE
+#: (default 70 Hz) and publishes the *mean* quality: a good report merged with a quality-0
+#: one would be fused with an angle that misses motion. So every report of these message
+#: sets spans at least 1/70 s (frames are added until it does), and the default rate is
+#: capped at 70 Hz: PX4 publishes each report on its own.
 PX4_SENS_FLOW_RATE_HZ = 70.0
-PX4_RATE_CAP_HZ = 50.0
+PX4_MIN_REPORT_SPAN_US = math.ceil(1e6 / PX4_SENS_FLOW_RATE_HZ)
 
 HEARTBEAT_TYPE = mavlink2.MAV_TYPE_ONBOARD_CONTROLLER  # 18: no MAV_TYPE for a flow sensor
 
@@ -138,16 +139,19 @@ class MavlinkLink(FlowLink):
         return WIRE_BYTES["HEARTBEAT"] * self.config.heartbeat_rate_hz + extras
 
     def _default_rate_cap(self) -> float:
-        return PX4_RATE_CAP_HZ if "OPTICAL_FLOW_RAD" in self.message_set else 100.0
+        return PX4_SENS_FLOW_RATE_HZ if "OPTICAL_FLOW_RAD" in self.message_set else 100.0
+
+    def _min_report_span_us(self) -> float:
+        return PX4_MIN_REPORT_SPAN_US if "OPTICAL_FLOW_RAD" in self.message_set else 0.0
 
     def _choose_rate(self) -> float:
         rate = super()._choose_rate()
-        if "OPTICAL_FLOW_RAD" in self.message_set and rate > PX4_RATE_CAP_HZ:
-            log.warning("%s on %s: %.0f Hz OPTICAL_FLOW_RAD: PX4 merges messages that come faster than "
-                        "SENS_FLOW_RATE (default %.0f Hz) and averages their qualities, so a quality-0 "
-                        "report can be fused with a good one's; keep message_rate_hz <= %.0f or raise "
-                        "SENS_FLOW_RATE above it", self.protocol, self.config.port, rate,
-                        PX4_SENS_FLOW_RATE_HZ, PX4_RATE_CAP_HZ)
+        if "OPTICAL_FLOW_RAD" in self.message_set and rate > PX4_SENS_FLOW_RATE_HZ:
+            log.warning("%s on %s: message_rate_hz %.0f: OPTICAL_FLOW_RAD reports span at least %.1f ms "
+                        "(PX4 merges shorter ones up to 1/SENS_FLOW_RATE, default %.0f Hz, and averages "
+                        "their qualities), so at most %.0f go out per second", self.protocol,
+                        self.config.port, rate, PX4_MIN_REPORT_SPAN_US / 1e3, PX4_SENS_FLOW_RATE_HZ,
+                        PX4_SENS_FLOW_RATE_HZ)
         return rate
 
     def _messages_per_report(self) -> int:
