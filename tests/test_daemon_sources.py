@@ -14,6 +14,7 @@ import pytest
 
 from firmware_py.angular import focal_length_px_from_fov
 from firmware_py.clock import host_us
+from firmware_py.config import Config
 from firmware_py.sources import Frame, SourceError, make_source, open_source, parse_uri
 from firmware_py.sources.v4l2 import V4L2Source, raw_to_gray
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # shared helpers
@@ -107,13 +108,15 @@ def test_depthai_replay_same_frames_as_file(clip, request):
         got = _read_all(source)
     finally:
         source.close()
-    # the DepthAI pipeline may discard what is still in flight when the file ends
-    assert len(frames) - 3 <= len(got) <= len(frames)
+    # the DepthAI pipeline may discard what is still in flight when the file ends, and under
+    # load (once in a full test run) it lost the first five frames of the file as it started
+    assert len(frames) - 8 <= len(got) <= len(frames)
     for frame in got:
         _check_frame(frame, 160, 120)
         assert np.array_equal(frame.image, frames[frame.index])  # GRAY8, bit-exact
         assert frame.timestamp_us == frame.index * 20_000
-    assert [f.index for f in got] == list(range(len(got)))
+    first = got[0].index
+    assert first <= 5 and [f.index for f in got] == list(range(first, first + len(got)))  # no gaps
 
 
 def test_depthai_replay_host_imagemanip_resizes(clip, request):
@@ -129,6 +132,127 @@ def test_depthai_replay_host_imagemanip_resizes(clip, request):
     _check_frame(frame, 80, 60)
     reference = cv2.resize(frames[frame.index], (80, 60), interpolation=cv2.INTER_AREA)
     assert np.abs(frame.image.astype(int) - reference).mean() < 8  # same picture, DepthAI's resampler
+
+
+def test_depthai_replay_centre_crops_another_aspect_ratio_like_a_video_file(clip, request):
+    """A 160x120 file asked for at 80x80: DepthAI's ImageManip cuts the sides as the video
+    source does (not the default STRETCH, which scales x and y differently), and the source
+    says so in crop_fraction, from which the daemon derives the focal length."""
+    pytest.importorskip("depthai")
+    if not run_isolated_from_native_crashes(request, timeout=30.0):
+        return
+    path, frames = clip
+    video = open_source(f"video:{path}", width=80, height=80)
+    source = open_source(f"depthai-replay:{path}", width=80, height=80)
+    try:
+        frame = source.read()
+    finally:
+        source.close()
+        video.close()
+    _check_frame(frame, 80, 80)
+    assert source.crop_fraction == video.crop_fraction == (0.75, 1.0)
+    reference = cv2.resize(frames[frame.index][:, 20:140], (80, 80), interpolation=cv2.INTER_AREA)
+    assert np.abs(frame.image.astype(int) - reference).mean() < 8
+    stretched = cv2.resize(frames[frame.index], (80, 80), interpolation=cv2.INTER_AREA)
+    assert np.abs(frame.image.astype(int) - stretched).mean() > np.abs(frame.image.astype(int) - reference).mean() + 4
+
+
+class _FakeOakFrame:
+    """What a live OAK's GRAY8 ImgFrame offers the source (no device exists here)."""
+
+    def __init__(self, index, image, source_size):
+        import datetime
+
+        self.index, self.image, self.source_size = index, image, source_size
+        now = datetime.timedelta(microseconds=host_us())
+        self.device_time = datetime.timedelta(seconds=5, milliseconds=10 * index)
+        self.host_time = now - datetime.timedelta(milliseconds=4)
+
+    def getFrame(self):
+        return self.image
+
+    def getSequenceNum(self):
+        return self.index
+
+    def getTimestampDevice(self):
+        return self.device_time
+
+    def getTimestamp(self):
+        return self.host_time
+
+    def getSourceWidth(self):
+        return self.source_size[0]
+
+    def getSourceHeight(self):
+        return self.source_size[1]
+
+
+class _FakeOakQueue:
+    def __init__(self, frames):
+        self.frames = list(frames)
+
+    def get(self, timeout=None):
+        return self.frames.pop(0) if self.frames else None
+
+
+class _FakePipeline:
+    stopped = False
+
+    def stop(self):
+        self.stopped = True
+
+    def isRunning(self):
+        return not self.stopped
+
+
+def _fake_oak(frames=(), error=None):
+    from firmware_py.sources.depthai_source import DepthAISource
+
+    pipeline = _FakePipeline()
+
+    class FakeOak(DepthAISource):
+        def _start(self, dai):  # the thin seam: everything but the device
+            if error:
+                raise error
+            return pipeline, _FakeOakQueue(frames)
+
+    return FakeOak("CAM_B", width=320, height=240, fps=100), pipeline
+
+
+@pytest.mark.parametrize("sensor, crop", [((1280, 800), (0.833, 1.0)), ((1280, 720), (0.75, 1.0)),
+                                          ((640, 480), (1.0, 1.0))])
+def test_live_oak_reports_the_crop_of_its_sensor_image(sensor, crop):
+    """depthai's requestOutput crops the sensor image to the asked aspect ratio: the
+    OV9282's 1280x800 loses a sixth of its width at 320x240. open() waits for the first
+    frame, whose source size tells the crop, and the daemon's focal length follows it."""
+    pytest.importorskip("depthai")
+    image = _luma(320, 240)
+    frames = [_FakeOakFrame(i, image, sensor) for i in range(3)]
+    source, pipeline = _fake_oak(frames)
+    source.open()
+    assert source.crop_fraction == pytest.approx(crop, abs=1e-3)
+    got = [source.read() for _ in range(3)]
+    assert [f.index for f in got] == [0, 1, 2]                   # the first frame is not lost
+    assert [f.timestamp_us for f in got] == [5_000_000, 5_010_000, 5_020_000]  # device clock
+    assert np.array_equal(got[0].image, image)
+    # a 71.9° lens over the whole sensor width: f at 320 px wide from the uncropped width
+    config = Config()
+    config.set("optics", "horizontal_fov_deg", 71.9)
+    expected = focal_length_px_from_fov(fov_deg=71.9, size_px=320 / crop[0])
+    assert config.focal_length_px(320 / source.crop_fraction[0], None) == pytest.approx(expected, rel=1e-3)
+    source.close()
+    assert pipeline.stopped
+
+
+def test_live_oak_without_a_first_frame_or_camera_is_a_source_error():
+    pytest.importorskip("depthai")
+    source, pipeline = _fake_oak([])
+    with pytest.raises(SourceError, match=r"depthai:CAM_B: no frame for 2 s"):
+        source.open()
+    assert pipeline.stopped                                    # not left running
+    source, _ = _fake_oak(error=RuntimeError("Camera socket not found on the connected device"))
+    with pytest.raises(SourceError, match=r"this OAK has no CAM_B camera.*OAK-1 has only the colour camera"):
+        source.open()
 
 
 def test_synthetic_straight_flight_has_known_motion():
@@ -273,6 +397,7 @@ def test_v4l2_source_settings_timestamps_and_binning():
     assert cap.props[cv2.CAP_PROP_CONVERT_RGB] == 0
     assert cap.props[cv2.CAP_PROP_FOURCC] == cv2.VideoWriter_fourcc(*"GREY")
     assert cap.props[cv2.CAP_PROP_EXPOSURE] == 20  # 2000 µs in V4L2's 100 µs units
+    assert cap.props[cv2.CAP_PROP_AUTO_EXPOSURE] == 1  # V4L2_EXPOSURE_MANUAL
     assert cap.props[cv2.CAP_PROP_FRAME_WIDTH] == 32 and cap.props[cv2.CAP_PROP_FPS] == 90
     # this driver delivers 64x48 whatever was asked: the source bins it to 32x24
     frame = source.read()
@@ -282,6 +407,29 @@ def test_v4l2_source_settings_timestamps_and_binning():
     assert 0 < host_us() - frame.capture_host_us < 1_000_000
     source.close()
     assert cap.released
+
+
+def test_v4l2_without_exposure_asks_for_auto_exposure():
+    """A UVC camera keeps an earlier run's manual exposure until it loses power: with no
+    exposure_us the source asks for auto exposure (V4L2_EXPOSURE_APERTURE_PRIORITY)."""
+    caps = []
+    source = V4L2Source("0", capture_factory=lambda d, a: caps.append(_FakeV4L2Capture(d, a)) or caps[-1])
+    source.open()
+    assert caps[0].props[cv2.CAP_PROP_AUTO_EXPOSURE] == 3
+    assert cv2.CAP_PROP_EXPOSURE not in caps[0].props
+    source.close()
+
+
+@pytest.mark.parametrize("delivered", ["Y16 ", "UYVY", "NV12"])
+def test_v4l2_pixel_format_the_source_cannot_decode_is_refused(delivered):
+    """A driver that refuses the asked format falls back to its own; one raw_to_gray does
+    not know would be decoded as the asked one (garbage frames that look valid)."""
+    caps = []
+    source = V4L2Source("0", pixel_format="YUYV",
+                        capture_factory=lambda d, a: caps.append(_FakeV4L2Capture(d, a, fourcc=delivered)) or caps[-1])
+    with pytest.raises(SourceError, match=f"v4l2:0: asked for pixel format YUYV, the driver delivers '{delivered}'"):
+        source.open()
+    assert caps[0].released
 
 
 def test_v4l2_errors_name_the_device(tmp_path):

@@ -4,12 +4,16 @@
 Both build a pipeline whose last output delivers GRAY8 ``ImgFrame`` messages at the
 processing resolution into a host queue; :meth:`DepthAISource.read` is the same for both.
 
-- camera: ``Camera.build(socket, sensorFps=fps).requestOutput((w, h), GRAY8, fps=fps)``;
+- camera: ``Camera.build(socket, sensorFps=fps).requestOutput((w, h), GRAY8, CROP, fps)``;
   the timestamp is the device's capture time (``getTimestampDevice``), the latency start is
   the same instant in host time (``getTimestamp``, which depthai syncs to the host's
-  monotonic clock), so USB transfer is counted;
+  monotonic clock), so USB transfer is counted. ``CROP`` keeps the aspect ratio: the
+  sensor's 1280×800 (OV9282) or 640×480 (OV7251) image loses its sides or top and bottom,
+  and :attr:`crop_fraction` says how much, from the first frame's source size (``open``
+  waits for it), so a field of view in the configuration gives the right focal length;
 - replay (no device, ``Pipeline(False)``): ``ReplayVideo`` (GRAY8) → ``ImageManip`` run on
-  the host (resize to w×h, GRAY8); the timestamp is ``sequence_number / file fps``.
+  the host (centre crop to the w:h aspect ratio, resize to w×h, GRAY8; x and y scaled
+  alike, as the ``video:`` source does); the timestamp is ``sequence_number / file fps``.
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ import math
 import numpy as np
 
 from ..clock import host_us
-from .base import Frame, FrameSource, SourceError
+from .base import Frame, FrameSource, SourceError, centre_crop
 from .video import probe_video
 
 __all__ = ["DepthAISource", "MONO_SOCKETS"]
@@ -89,10 +93,24 @@ class DepthAISource(FrameSource):
                 file_fps = float(fps)
             self.width, self.height, self.fps = int(width or native_w), int(height or native_h), float(file_fps)
             self.default_focal_length_px = float(self.width)
+            self.crop_fraction = self._crop_of(native_w, native_h, "file")
         self._pipeline = None
         self._queue = None
+        self._first = None  # the live camera's first frame, read by open()
         self._index = 0
         self._period_us = 1e6 / self.fps
+
+    def _crop_of(self, delivered_w: int, delivered_h: int, what: str) -> tuple[float, float]:
+        """Shares of a delivered image's width and height that the centre crop to the
+        processing aspect ratio keeps (logged when it cuts)."""
+        _, _, crop_w, crop_h = centre_crop(delivered_w, delivered_h, self.width, self.height)
+        crop = (crop_w / delivered_w, crop_h / delivered_h)
+        if crop != (1.0, 1.0):
+            log.warning("%s: the %s image is %dx%d, [source] asks for %dx%d (another aspect ratio): its "
+                        "centre %dx%d (%.1f %% of its width) is used; a field of view in [optics] is "
+                        "that of the whole %dx%d image", self.uri, what, delivered_w, delivered_h,
+                        self.width, self.height, crop_w, crop_h, 100.0 * crop[0], delivered_w, delivered_h)
+        return crop
 
     # -- pipeline construction: the only part that differs between camera and replay --
     def _build_camera(self, dai, pipeline):
@@ -100,7 +118,10 @@ class DepthAISource(FrameSource):
         if self.exposure_us is not None:
             iso = int(self.gain) if self.gain is not None else 400
             cam.initialControl.setManualExposure(int(self.exposure_us), iso)
-        return cam.requestOutput((self.width, self.height), dai.ImgFrame.Type.GRAY8, fps=self.fps)
+        # CROP (depthai's default, said here): the sensor image is centre-cropped to the
+        # aspect ratio, never stretched; open() learns the crop from the first frame
+        return cam.requestOutput((self.width, self.height), dai.ImgFrame.Type.GRAY8,
+                                 resizeMode=dai.ImgResizeMode.CROP, fps=self.fps)
 
     def _build_replay(self, dai, pipeline):
         replay = pipeline.create(dai.node.ReplayVideo)
@@ -110,38 +131,80 @@ class DepthAISource(FrameSource):
         replay.setFps(self.fps if self.realtime else _UNPACED_FPS)
         manip = pipeline.create(dai.node.ImageManip)
         manip.setRunOnHost(True)
-        manip.initialConfig.setOutputSize(self.width, self.height)
+        # centre crop to the aspect ratio, like video: (the default STRETCH scales x and y
+        # differently, which the link's single focal length cannot describe)
+        manip.initialConfig.setOutputSize(self.width, self.height, dai.ImageManipConfig.ResizeMode.CENTER_CROP)
         manip.initialConfig.setFrameType(dai.ImgFrame.Type.GRAY8)
         replay.out.link(manip.inputImage)
         return manip.out
+
+    def _start(self, dai):
+        """Build and start the pipeline; returns (pipeline, output queue)."""
+        if self.live:
+            pipeline = dai.Pipeline()  # connects to the first OAK found
+            output = self._build_camera(dai, pipeline)
+            # Live camera: keep only the newest frame, never queue into latency.
+            queue = output.createOutputQueue(maxSize=1, blocking=False)
+        else:
+            pipeline = dai.Pipeline(False)  # host only, no device
+            output = self._build_replay(dai, pipeline)
+            # File: back-pressure instead of dropping.
+            queue = output.createOutputQueue(maxSize=2, blocking=True)
+        pipeline.start()
+        return pipeline, queue
 
     def open(self) -> None:
         self.close()
         dai = _import_depthai()
         try:
-            if self.live:
-                pipeline = dai.Pipeline()  # connects to the first OAK found
-                output = self._build_camera(dai, pipeline)
-                # Live camera: keep only the newest frame, never queue into latency.
-                queue = output.createOutputQueue(maxSize=1, blocking=False)
-            else:
-                pipeline = dai.Pipeline(False)  # host only, no device
-                output = self._build_replay(dai, pipeline)
-                # File: back-pressure instead of dropping.
-                queue = output.createOutputQueue(maxSize=2, blocking=True)
-            pipeline.start()
+            self._pipeline, self._queue = self._start(dai)
         except SourceError:
             raise
         except Exception as exc:
-            hint = " (is an OAK connected, and the udev rule for 03e7 installed?)" if self.live else ""
+            if self.live and "socket not found" in str(exc).lower():
+                hint = (f" (this OAK has no {self.socket} camera: emdflow uses the mono cameras "
+                        f"{' or '.join(MONO_SOCKETS)}; an OAK-1 has only the colour camera)")
+            else:
+                hint = " (is an OAK connected, and the udev rule for 03e7 installed?)" if self.live else ""
             raise SourceError(f"{self.uri}: cannot start the DepthAI pipeline: {exc}{hint}") from None
-        self._pipeline, self._queue = pipeline, queue
         self._index = 0
+        if self.live:
+            # the crop the camera applies is known from its frames: wait for the first
+            try:
+                self._first = self._next()
+            except SourceError:
+                self.close()
+                raise
+            self.crop_fraction = self._delivered_crop(self._first)
+
+    def _delivered_crop(self, msg) -> tuple[float, float]:
+        """The centre crop the camera applied, from a frame's source (sensor image) size;
+        (1, 1) when the frame does not say."""
+        try:
+            source_w, source_h = int(msg.getSourceWidth()), int(msg.getSourceHeight())
+        except Exception as exc:  # noqa: BLE001 - metadata only: the frames are still good
+            log.debug("%s: no source size on the frames (%s)", self.uri, exc)
+            return (1.0, 1.0)
+        if source_w <= 0 or source_h <= 0:
+            return (1.0, 1.0)
+        return self._crop_of(source_w, source_h, "sensor")
 
     def read(self) -> Frame | None:
         if self._queue is None:
             raise SourceError(f"{self.uri}: not open")
+        if self._first is not None:
+            msg, self._first = self._first, None
+            self.waited_us = 0
+            return self._to_frame(msg)
         t0 = host_us()
+        msg = self._next()
+        if msg is None:
+            return None
+        self.waited_us = host_us() - t0  # queue wait (replay pacing), not capture work
+        return self._to_frame(msg)
+
+    def _next(self):
+        """The next message from the queue; None at the end of a replay."""
         try:
             msg = self._queue.get(timeout=_timedelta(_GET_TIMEOUT_S))
         except Exception as exc:
@@ -155,8 +218,7 @@ class DepthAISource(FrameSource):
             if not self.live and not self._pipeline.isRunning():
                 return None
             raise SourceError(f"{self.uri}: no frame for {_GET_TIMEOUT_S:g} s")
-        self.waited_us = host_us() - t0  # queue wait (replay pacing), not capture work
-        return self._to_frame(msg)
+        return msg
 
     def _to_frame(self, msg) -> Frame:
         received = host_us()
@@ -184,6 +246,7 @@ class DepthAISource(FrameSource):
                 log.debug("%s: pipeline stop: %s", self.uri, exc)
             self._pipeline = None
             self._queue = None
+        self._first = None
 
 
 def _timedelta(seconds: float):

@@ -177,6 +177,10 @@ class V4L2Source(FrameSource):
         if self.exposure_us is not None:
             self._set(cv2.CAP_PROP_AUTO_EXPOSURE, _AUTO_EXPOSURE_MANUAL, "manual exposure")
             self._set(cv2.CAP_PROP_EXPOSURE, self.exposure_us / _EXPOSURE_UNIT_US, "exposure (100 µs units)")
+        else:
+            # a UVC camera keeps its controls until it loses power: an earlier run's manual
+            # exposure would stay, so auto exposure is asked for whenever none is set
+            self._set(cv2.CAP_PROP_AUTO_EXPOSURE, _AUTO_EXPOSURE_AUTO, "auto exposure")
         if self.gain is not None:
             self._set(cv2.CAP_PROP_GAIN, self.gain, "gain")
         got_w, got_h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
@@ -185,7 +189,15 @@ class V4L2Source(FrameSource):
         got_w, got_h = (got_w, got_h) if self._size_reported else (self.width, self.height)
         got_fourcc = int(cap.get(cv2.CAP_PROP_FOURCC))
         got_fmt = got_fourcc.to_bytes(4, "little").decode("ascii", "replace") if got_fourcc > 0 else self.pixel_format
-        if got_fmt in PIXEL_FORMATS and got_fmt != self.pixel_format:
+        if got_fmt != self.pixel_format:
+            if got_fmt not in PIXEL_FORMATS:
+                # decoding its buffers as the asked format would give garbage frames that
+                # look valid (a Y16 buffer read as GREY, UYVY as YUYV)
+                self.close()
+                raise SourceError(f"{self.uri}: asked for pixel format {self.pixel_format}, the driver "
+                                  f"delivers {got_fmt!r}, which is not one of {', '.join(PIXEL_FORMATS)}; "
+                                  "set [source] pixel_format to one the camera offers "
+                                  "(v4l2-ctl --list-formats-ext)")
             log.warning("%s: asked for %s, the driver delivers %s", self.uri, self.pixel_format, got_fmt)
             self.pixel_format = got_fmt
         self._size = (got_w, got_h)
