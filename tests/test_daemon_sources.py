@@ -415,8 +415,14 @@ def test_v4l2_without_exposure_asks_for_auto_exposure():
     caps = []
     source = V4L2Source("0", capture_factory=lambda d, a: caps.append(_FakeV4L2Capture(d, a)) or caps[-1])
     source.open()
-    assert caps[0].props[cv2.CAP_PROP_AUTO_EXPOSURE] == 3
+    cap = caps[0]
+    assert cap.props[cv2.CAP_PROP_AUTO_EXPOSURE] == 3
     assert cv2.CAP_PROP_EXPOSURE not in caps[0].props
+    source.close()
+    # V4L2 counts exposure in whole 100 µs units: 50 µs is the shortest, 1, not 0
+    source = V4L2Source("0", exposure_us=50, capture_factory=lambda d, a: caps.append(_FakeV4L2Capture(d, a)) or caps[-1])
+    source.open()
+    assert caps[-1].props[cv2.CAP_PROP_EXPOSURE] == 1 and caps[-1].props[cv2.CAP_PROP_AUTO_EXPOSURE] == 1
     source.close()
 
 

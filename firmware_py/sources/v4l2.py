@@ -176,7 +176,9 @@ class V4L2Source(FrameSource):
         self._set(cv2.CAP_PROP_CONVERT_RGB, 0, "raw mode (CONVERT_RGB=0)")
         if self.exposure_us is not None:
             self._set(cv2.CAP_PROP_AUTO_EXPOSURE, _AUTO_EXPOSURE_MANUAL, "manual exposure")
-            self._set(cv2.CAP_PROP_EXPOSURE, self.exposure_us / _EXPOSURE_UNIT_US, "exposure (100 µs units)")
+            # whole 100 µs units, at least one (0 is not an exposure time)
+            units = max(1, round(self.exposure_us / _EXPOSURE_UNIT_US))
+            self._set(cv2.CAP_PROP_EXPOSURE, units, "exposure (100 µs units)")
         else:
             # a UVC camera keeps its controls until it loses power: an earlier run's manual
             # exposure would stay, so auto exposure is asked for whenever none is set
