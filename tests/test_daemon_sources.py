@@ -194,6 +194,9 @@ class _FakeOakQueue:
     def get(self, timeout=None):
         return self.frames.pop(0) if self.frames else None
 
+    def tryGet(self):
+        return self.frames.pop(0) if self.frames else None
+
 
 class _FakePipeline:
     stopped = False
@@ -220,21 +223,29 @@ def _fake_oak(frames=(), error=None):
 
 
 @pytest.mark.parametrize("sensor, crop", [((1280, 800), (0.833, 1.0)), ((1280, 720), (0.75, 1.0)),
-                                          ((640, 480), (1.0, 1.0))])
+                                          ((640, 480), (1.0, 1.0)), ((0, 0), (1.0, 1.0))])
 def test_live_oak_reports_the_crop_of_its_sensor_image(sensor, crop):
     """depthai's requestOutput crops the sensor image to the asked aspect ratio: the
     OV9282's 1280x800 loses a sixth of its width at 320x240. open() waits for the first
     frame, whose source size tells the crop, and the daemon's focal length follows it."""
     pytest.importorskip("depthai")
     image = _luma(320, 240)
-    frames = [_FakeOakFrame(i, image, sensor) for i in range(3)]
-    source, pipeline = _fake_oak(frames)
+    source, pipeline = _fake_oak([_FakeOakFrame(0, image, sensor)])
     source.open()
     assert source.crop_fraction == pytest.approx(crop, abs=1e-3)
-    got = [source.read() for _ in range(3)]
-    assert [f.index for f in got] == [0, 1, 2]                   # the first frame is not lost
+    got = [source.read()]                                        # the frame open() waited for
+    source._queue.frames += [_FakeOakFrame(i, image, sensor) for i in (1, 2)]
+    got += [source.read(), source.read()]
+    assert [f.index for f in got] == [0, 1, 2]
     assert [f.timestamp_us for f in got] == [5_000_000, 5_010_000, 5_020_000]  # device clock
     assert np.array_equal(got[0].image, image)
+    source.close()
+    assert pipeline.stopped
+    # ... unless a newer frame came while the daemon built its engine: the live queue
+    # holds only the newest, and the stale one is not flown on
+    source, pipeline = _fake_oak([_FakeOakFrame(0, image, sensor), _FakeOakFrame(7, image, sensor)])
+    source.open()
+    assert source.read().index == 7
     # a 71.9° lens over the whole sensor width: f at 320 px wide from the uncropped width
     config = Config()
     config.set("optics", "horizontal_fov_deg", 71.9)
@@ -423,6 +434,35 @@ def test_v4l2_without_exposure_asks_for_auto_exposure():
     source = V4L2Source("0", exposure_us=50, capture_factory=lambda d, a: caps.append(_FakeV4L2Capture(d, a)) or caps[-1])
     source.open()
     assert caps[-1].props[cv2.CAP_PROP_EXPOSURE] == 1 and caps[-1].props[cv2.CAP_PROP_AUTO_EXPOSURE] == 1
+    source.close()
+
+
+def test_v4l2_auto_exposure_falls_back_to_full_auto():
+    """A driver whose exposure menu has no aperture priority (3) gets full auto (0)."""
+    class NoAperturePriority(_FakeV4L2Capture):
+        def set(self, prop, value):
+            return False if (prop, value) == (cv2.CAP_PROP_AUTO_EXPOSURE, 3) else super().set(prop, value)
+
+    caps = []
+    source = V4L2Source("0", capture_factory=lambda d, a: caps.append(NoAperturePriority(d, a)) or caps[-1])
+    source.open()
+    assert caps[0].props[cv2.CAP_PROP_AUTO_EXPOSURE] == 0
+    source.close()
+
+
+@pytest.mark.parametrize("delivered, used", [("JPEG", "MJPG"), ("BGR3", "YUYV")])
+def test_v4l2_pixel_format_aliases_are_read(delivered, used, caplog):
+    """JPEG is MJPG's other name; BGR3 is the driver's own conversion, read from its three
+    channels: both still give frames."""
+    luma = _luma(64, 48)
+    raw = _jpeg(luma) if delivered == "JPEG" else cv2.cvtColor(luma, cv2.COLOR_GRAY2BGR)
+    source = V4L2Source("0", width=64, height=48, pixel_format="YUYV",
+                        capture_factory=lambda d, a: _FakeV4L2Capture(d, a, buffers=lambda i: raw, fourcc=delivered))
+    source.open()
+    assert source.pixel_format == used
+    frame = source.read()
+    _check_frame(frame, 64, 48)
+    assert np.abs(frame.image.astype(int) - luma).mean() < 3
     source.close()
 
 

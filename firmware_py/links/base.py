@@ -297,7 +297,7 @@ class FlowLink:
         if rate < 10:
             log.warning("%s on %s: only %.0f flow messages/s fit in %d baud; raise the baud rate",
                         self.protocol, cfg.port, rate, cfg.baud)
-        log.info("%s on %s: %.0f flow messages/s (%d bytes each) at %d baud", self.protocol, cfg.port,
+        log.info("%s on %s: up to %.0f flow messages/s (%d bytes each) at %d baud", self.protocol, cfg.port,
                  rate, self._bytes_per_report(), cfg.baud)
         return rate
 

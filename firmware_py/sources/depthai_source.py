@@ -186,6 +186,9 @@ class DepthAISource(FrameSource):
             log.debug("%s: no source size on the frames (%s)", self.uri, exc)
             return (1.0, 1.0)
         if source_w <= 0 or source_h <= 0:
+            log.warning("%s: the frames do not say their sensor image size: the crop is unknown, and a "
+                        "field of view in [optics] is taken over the %dx%d frames themselves", self.uri,
+                        self.width, self.height)
             return (1.0, 1.0)
         return self._crop_of(source_w, source_h, "sensor")
 
@@ -193,9 +196,12 @@ class DepthAISource(FrameSource):
         if self._queue is None:
             raise SourceError(f"{self.uri}: not open")
         if self._first is not None:
+            # the frame open() waited for, unless a newer one came meanwhile (the daemon
+            # builds its engine between open and the first read: seconds on PoCL)
             msg, self._first = self._first, None
+            newer = self._queue.tryGet()
             self.waited_us = 0
-            return self._to_frame(msg)
+            return self._to_frame(msg if newer is None else newer)
         t0 = host_us()
         msg = self._next()
         if msg is None:

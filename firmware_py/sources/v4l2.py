@@ -31,9 +31,13 @@ __all__ = ["V4L2Source", "raw_to_gray", "PIXEL_FORMATS"]
 log = logging.getLogger("emdflowd.v4l2")
 
 PIXEL_FORMATS = ("GREY", "YUYV", "MJPG")
-# V4L2 exposure_absolute is in units of 100 µs; V4L2_EXPOSURE_MANUAL = 1, APERTURE_PRIORITY = 3.
+# What drivers also report for those: JPEG is MJPG's other name; BGR3 is a driver's own
+# conversion to BGR, which raw_to_gray reads from its three channels.
+_FORMAT_ALIASES = {"JPEG": "MJPG"}
+_DRIVER_BGR = "BGR3"
+# V4L2 exposure_absolute is in units of 100 µs; V4L2_EXPOSURE_AUTO = 0, MANUAL = 1, APERTURE_PRIORITY = 3.
 _EXPOSURE_UNIT_US = 100.0
-_AUTO_EXPOSURE_MANUAL, _AUTO_EXPOSURE_AUTO = 1, 3
+_AUTO_EXPOSURE_FULL, _AUTO_EXPOSURE_MANUAL, _AUTO_EXPOSURE_AUTO = 0, 1, 3
 # A buffer timestamp further than this from "now" is not CLOCK_MONOTONIC (some old drivers).
 _PLAUSIBLE_TIMESTAMP_US = 2_000_000
 # This many unconvertible buffers in a row mean the stream itself is broken (a wedged
@@ -179,10 +183,13 @@ class V4L2Source(FrameSource):
             # whole 100 µs units, at least one (0 is not an exposure time)
             units = max(1, round(self.exposure_us / _EXPOSURE_UNIT_US))
             self._set(cv2.CAP_PROP_EXPOSURE, units, "exposure (100 µs units)")
-        else:
+        elif not (cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, _AUTO_EXPOSURE_AUTO)
+                  or cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, _AUTO_EXPOSURE_FULL)):
             # a UVC camera keeps its controls until it loses power: an earlier run's manual
             # exposure would stay, so auto exposure is asked for whenever none is set
-            self._set(cv2.CAP_PROP_AUTO_EXPOSURE, _AUTO_EXPOSURE_AUTO, "auto exposure")
+            # (aperture priority, UVC's auto mode, else full auto); a camera without the
+            # control is not an error
+            log.info("%s: the driver has no auto exposure control (or refused it)", self.uri)
         if self.gain is not None:
             self._set(cv2.CAP_PROP_GAIN, self.gain, "gain")
         got_w, got_h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
@@ -191,7 +198,11 @@ class V4L2Source(FrameSource):
         got_w, got_h = (got_w, got_h) if self._size_reported else (self.width, self.height)
         got_fourcc = int(cap.get(cv2.CAP_PROP_FOURCC))
         got_fmt = got_fourcc.to_bytes(4, "little").decode("ascii", "replace") if got_fourcc > 0 else self.pixel_format
-        if got_fmt != self.pixel_format:
+        got_fmt = _FORMAT_ALIASES.get(got_fmt, got_fmt)
+        if got_fmt == _DRIVER_BGR:
+            log.warning("%s: asked for %s, the driver converts to BGR: gray is computed from its "
+                        "three channels", self.uri, self.pixel_format)
+        elif got_fmt != self.pixel_format:
             if got_fmt not in PIXEL_FORMATS:
                 # decoding its buffers as the asked format would give garbage frames that
                 # look valid (a Y16 buffer read as GREY, UYVY as YUYV)
