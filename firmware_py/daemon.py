@@ -39,7 +39,7 @@ from .clock import host_us
 from .config import Config, ConfigError
 from .links import FlowSample
 from .sdnotify import Notifier
-from .sources import Frame, FrameSource, SourceError, make_source
+from .sources import Frame, FrameSource, SourceConfigError, SourceError, make_source
 from .sources.base import _BAD_FRAME_LOG_S
 
 __all__ = ["Daemon", "SourceKeeper", "FrameMailbox", "SteadySubset", "Stats", "choose_threading"]
@@ -516,8 +516,8 @@ class Daemon:
             source.open()
             keeper.adopt(source)
         except SourceError as exc:
-            if not source.live:
-                raise
+            if not source.live or isinstance(exc, SourceConfigError):
+                raise  # a file that will not open, a camera that cannot work as configured
             log.warning("%s; retrying in %.1f s (heartbeats continue, quality 0)", exc, d.reopen_backoff_s)
             keeper.retry_after(d.reopen_backoff_s)
         else:

@@ -835,3 +835,50 @@ def test_synthetic_circle_frames_move_as_the_truth_says():
     for k in (1, 7, 13, 22, 31, 40):
         (dx, dy), _ = cv2.phaseCorrelate(frames[k - 1], frames[k], window)
         assert (dx, dy) == pytest.approx(source.truth(k), abs=0.3), k
+
+
+def test_a_camera_that_cannot_work_as_configured_is_exit_2_at_start(caplog):
+    """A camera that substitutes a pixel format emdflow cannot decode is a configuration
+    fault, not a lost camera: retrying cannot help, so the daemon stops at start with exit
+    code 2 and one line that names the format (the unit does not restart on 2)."""
+    from firmware_py.cli import EXIT_CONFIG, run_daemon as run_cli_daemon
+    from firmware_py.daemon import Daemon
+
+    config = Config()
+    config.set("source", "uri", "v4l2:0")
+    config.set("source", "pixel_format", "YUYV")
+    config.set("optics", "focal_length_px", 100.0)
+    config.set("engine", "backend", "numpy")
+    config.frames = 5
+
+    def factory():
+        return V4L2Source("0", width=64, height=48, pixel_format="YUYV",
+                          capture_factory=lambda d, a: _FakeV4L2Capture(d, a, fourcc="Y16 "))
+
+    import threading
+
+    from firmware_py.sources import SourceConfigError
+
+    def make_daemon():
+        links = []
+        return Daemon(config, source_factory=factory, link_factory=lambda f: links.append(_NullLink(f)) or links[-1])
+
+    # in a thread first: a daemon that retried instead would run for ever
+    daemon, raised = make_daemon(), []
+
+    def run():
+        try:
+            daemon.run()
+        except Exception as exc:  # noqa: BLE001 - what the daemon lets out is the point
+            raised.append(exc)
+
+    runner = threading.Thread(target=run)
+    runner.start()
+    runner.join(20.0)
+    if runner.is_alive():
+        daemon.stop()
+        runner.join(10.0)
+    assert len(raised) == 1 and isinstance(raised[0], SourceConfigError), raised
+    with caplog.at_level("ERROR", logger="emdflowd"):
+        assert run_cli_daemon(config, daemon=make_daemon()) == EXIT_CONFIG
+    assert any("driver delivers 'Y16 '" in r.getMessage() for r in caplog.records)

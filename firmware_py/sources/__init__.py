@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import dataclasses
 
-from .base import Frame, FrameError, FrameSource, Pacer, SourceError, centre_crop, fit_to
+from .base import Frame, FrameError, FrameSource, Pacer, SourceConfigError, SourceError, centre_crop, fit_to
 
-__all__ = ["Frame", "FrameSource", "SourceError", "FrameError", "SourceSpec", "parse_uri", "open_source",
+__all__ = ["Frame", "FrameSource", "SourceError", "SourceConfigError", "FrameError", "SourceSpec", "parse_uri", "open_source",
            "make_source", "SCHEMES", "Pacer", "fit_to", "centre_crop"]
 
 SCHEMES = ("v4l2", "depthai", "depthai-replay", "video", "synthetic")

@@ -14,7 +14,8 @@ import time
 import cv2
 import numpy as np
 
-__all__ = ["Frame", "FrameSource", "SourceError", "FrameError", "Pacer", "fit_to", "centre_crop"]
+__all__ = ["Frame", "FrameSource", "SourceError", "SourceConfigError", "FrameError", "Pacer", "fit_to",
+           "centre_crop"]
 
 #: At most one "frame skipped" log line per this many seconds (the sources' unconvertible
 #: buffers, the daemon's frames of the wrong size).
@@ -23,6 +24,13 @@ _BAD_FRAME_LOG_S = 5.0
 
 class SourceError(RuntimeError):
     """A source cannot be opened or has failed; the message names the device or file."""
+
+
+class SourceConfigError(SourceError):
+    """The camera is there but cannot work as configured (a pixel format it substitutes
+    with one emdflow cannot decode, a socket the device does not have): retrying cannot
+    help. At start the daemon exits with 2 on it; a camera that shows it after a reopen is
+    retried like a lost one (another device may have been plugged in)."""
 
 
 class FrameError(SourceError):

@@ -24,7 +24,7 @@ import math
 import numpy as np
 
 from ..clock import host_us
-from .base import Frame, FrameSource, SourceError, centre_crop
+from .base import Frame, FrameSource, SourceConfigError, SourceError, centre_crop
 from .video import probe_video
 
 __all__ = ["DepthAISource", "MONO_SOCKETS"]
@@ -162,10 +162,11 @@ class DepthAISource(FrameSource):
             raise
         except Exception as exc:
             if self.live and "socket not found" in str(exc).lower():
-                hint = (f" (this OAK has no {self.socket} camera: emdflow uses the mono cameras "
-                        f"{' or '.join(MONO_SOCKETS)}; an OAK-1 has only the colour camera)")
-            else:
-                hint = " (is an OAK connected, and the udev rule for 03e7 installed?)" if self.live else ""
+                raise SourceConfigError(
+                    f"{self.uri}: cannot start the DepthAI pipeline: {exc} (this OAK has no {self.socket} "
+                    f"camera: emdflow uses the mono cameras {' or '.join(MONO_SOCKETS)}; an OAK-1 has only "
+                    "the colour camera)") from None
+            hint = " (is an OAK connected, and the udev rule for 03e7 installed?)" if self.live else ""
             raise SourceError(f"{self.uri}: cannot start the DepthAI pipeline: {exc}{hint}") from None
         self._index = 0
         if self.live:

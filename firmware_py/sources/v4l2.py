@@ -24,7 +24,8 @@ import cv2
 import numpy as np
 
 from ..clock import host_us
-from .base import _BAD_FRAME_LOG_S, Frame, FrameError, FrameSource, SourceError, centre_crop, fit_to
+from .base import (_BAD_FRAME_LOG_S, Frame, FrameError, FrameSource, SourceConfigError, SourceError, centre_crop,
+                   fit_to)
 
 __all__ = ["V4L2Source", "raw_to_gray", "PIXEL_FORMATS"]
 
@@ -207,7 +208,7 @@ class V4L2Source(FrameSource):
                 # decoding its buffers as the asked format would give garbage frames that
                 # look valid (a Y16 buffer read as GREY, UYVY as YUYV)
                 self.close()
-                raise SourceError(f"{self.uri}: asked for pixel format {self.pixel_format}, the driver "
+                raise SourceConfigError(f"{self.uri}: asked for pixel format {self.pixel_format}, the driver "
                                   f"delivers {got_fmt!r}, which is not one of {', '.join(PIXEL_FORMATS)}; "
                                   "set [source] pixel_format to one the camera offers "
                                   "(v4l2-ctl --list-formats-ext)")
