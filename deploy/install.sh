@@ -4,12 +4,14 @@
 #
 #   sudo deploy/install.sh                 # PoCL (CPU OpenCL) from pip, service enabled
 #   sudo deploy/install.sh --opencl apt    # PoCL from Debian (pocl-opencl-icd), e.g. 32-bit Pi OS
-#   sudo deploy/install.sh --opencl vendor # the board's own OpenCL ICD (Mali, Jetson, ...)
+#   sudo deploy/install.sh --opencl vendor # the board's own OpenCL ICD (e.g. Mali; NVIDIA ships
+#                                          # no OpenCL for Jetson: use the default PoCL there)
 #   sudo deploy/install.sh --python python3.11   # Ubuntu 22.04 / Jetson JetPack 6 (python3 is 3.10)
 #   deploy/install.sh --dry-run            # print every step, change nothing (no root needed)
 #
 # Steps: Python >= 3.11 check -> apt packages (python3-venv, binutils for PoCL's linker, the
-# OpenCL ICD loader and driver) -> system user 'emdflow' in groups video, dialout -> its
+# OpenCL ICD loader and driver) -> system user 'emdflow' in groups video, dialout (and
+# render where it exists) -> its
 # state and cache directories (home, PoCL kernel cache) -> venv in PREFIX with the package
 # -> /etc/emdflow/emdflow.toml (kept if present) -> udev rule -> systemd unit.
 set -euo pipefail
@@ -113,7 +115,7 @@ EXTRAS=opencl
 case "$OPENCL" in
     pip) EXTRAS=pocl ;;                       # pyopencl[pocl]: PoCL wheels, needs binutils' ld
     apt) APT_PKGS+=(pocl-opencl-icd) ;;        # Debian's PoCL, found through /etc/OpenCL/vendors
-    vendor) ;;                                 # e.g. Mali (libmali), Jetson (nvidia-l4t), Rusticl
+    vendor) ;;                                 # e.g. Mali (libmali: see the unit's DeviceAllow), Rusticl
 esac
 [ "$DEPTHAI" = 1 ] && EXTRAS="$EXTRAS,depthai"
 
@@ -133,12 +135,15 @@ if [ "$PYTHON_CHECKED" = 0 ] && [ "$DRY_RUN" = 0 ]; then
     check_python        # still before the user and the venv
 fi
 
-echo "== 2/7 service user '$SERVICE_USER' (groups video, dialout)"
+# Group 'render' (where it exists) owns /dev/dri/renderD*, which a GPU OpenCL driver opens.
+GROUPS_LIST=video,dialout
+if getent group render >/dev/null 2>&1; then GROUPS_LIST="$GROUPS_LIST,render"; fi
+echo "== 2/7 service user '$SERVICE_USER' (groups ${GROUPS_LIST//,/, })"
 if id "$SERVICE_USER" >/dev/null 2>&1; then
-    run usermod -a -G video,dialout "$SERVICE_USER"
+    run usermod -a -G "$GROUPS_LIST" "$SERVICE_USER"
 else
     run useradd --system --user-group --home-dir "$STATE_DIR" --no-create-home --shell /usr/sbin/nologin \
-        --groups video,dialout "$SERVICE_USER"
+        --groups "$GROUPS_LIST" "$SERVICE_USER"
 fi
 
 echo "== 3/7 state and cache directories $STATE_DIR, $CACHE_DIR (owner $SERVICE_USER)"
@@ -183,7 +188,14 @@ else
 fi
 
 echo "== 6/7 udev rule $UDEV_DIR/99-emdflow.rules (stable /dev/emdflow-camera, /dev/emdflow-fc)"
-run install -m 0644 "$SRC/deploy/99-emdflow.rules" "$UDEV_DIR/99-emdflow.rules"
+# The rule is meant to be edited (your camera's and adapter's IDs): an edited one is kept,
+# like the configuration, and the new example goes next to it.
+if [ -e "$UDEV_DIR/99-emdflow.rules" ] && ! cmp -s "$SRC/deploy/99-emdflow.rules" "$UDEV_DIR/99-emdflow.rules"; then
+    echo "   keeping your edited $UDEV_DIR/99-emdflow.rules (new example: $UDEV_DIR/99-emdflow.rules.example)"
+    run install -m 0644 "$SRC/deploy/99-emdflow.rules" "$UDEV_DIR/99-emdflow.rules.example"
+else
+    run install -m 0644 "$SRC/deploy/99-emdflow.rules" "$UDEV_DIR/99-emdflow.rules"
+fi
 run udevadm control --reload-rules
 run udevadm trigger
 

@@ -201,3 +201,22 @@ def test_install_stops_on_an_old_python_before_changing_anything(tmp_path):
     assert f"{sys.executable} -m venv {tmp_path}/opt/venv" in good.stdout
     versioned = _dry_run("--python", "python3.11", "--prefix", tmp_path / "opt")
     assert "python3.11 python3.11-venv" in versioned.stdout     # Ubuntu 22.04's extra interpreter
+
+
+def test_install_adds_the_service_user_to_render_where_that_group_exists(tmp_path):
+    """A GPU OpenCL driver opens /dev/dri/renderD*, owned by group 'render': the service
+    user joins it where the group exists (a getent stand-in says so here), and not where
+    it does not (this machine)."""
+    shim = tmp_path / "bin"
+    shim.mkdir()
+    (shim / "getent").write_text('#!/bin/sh\n[ "$1 $2" = "group render" ] && echo "render:x:993:" && exit 0\nexit 2\n')
+    (shim / "getent").chmod(0o755)
+    env = dict(os.environ, PATH=f"{shim}:{os.environ['PATH']}")
+    with_render = subprocess.run(["bash", str(DEPLOY / "install.sh"), "--dry-run"], capture_output=True, text=True,
+                                 timeout=60, env=env)
+    assert with_render.returncode == 0, with_render.stderr
+    assert "--groups video,dialout,render emdflow" in with_render.stdout
+    (shim / "getent").write_text("#!/bin/sh\nexit 2\n")
+    without = subprocess.run(["bash", str(DEPLOY / "install.sh"), "--dry-run"], capture_output=True, text=True,
+                             timeout=60, env=env)
+    assert "--groups video,dialout emdflow" in without.stdout
