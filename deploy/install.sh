@@ -188,14 +188,17 @@ else
 fi
 
 echo "== 6/7 udev rule $UDEV_DIR/99-emdflow.rules (stable /dev/emdflow-camera, /dev/emdflow-fc)"
-# The rule is meant to be edited (your camera's and adapter's IDs): an edited one is kept,
-# like the configuration, and the new example goes next to it.
-if [ -e "$UDEV_DIR/99-emdflow.rules" ] && ! cmp -s "$SRC/deploy/99-emdflow.rules" "$UDEV_DIR/99-emdflow.rules"; then
-    echo "   keeping your edited $UDEV_DIR/99-emdflow.rules (new example: $UDEV_DIR/99-emdflow.rules.example)"
-    run install -m 0644 "$SRC/deploy/99-emdflow.rules" "$UDEV_DIR/99-emdflow.rules.example"
+# The rule is meant to be edited (your camera's and adapter's IDs): one that differs from
+# the example the last install shipped (kept beside it as .example) is yours and stays, like
+# the configuration; an unedited one is updated.
+RULE="$UDEV_DIR/99-emdflow.rules"
+if [ -e "$RULE" ] && ! cmp -s "$SRC/deploy/99-emdflow.rules" "$RULE" \
+        && ! { [ -e "$RULE.example" ] && cmp -s "$RULE.example" "$RULE"; }; then
+    echo "   keeping $RULE: it differs from the example shipped (the new one: $RULE.example)"
 else
-    run install -m 0644 "$SRC/deploy/99-emdflow.rules" "$UDEV_DIR/99-emdflow.rules"
+    run install -m 0644 "$SRC/deploy/99-emdflow.rules" "$RULE"
 fi
+run install -m 0644 "$SRC/deploy/99-emdflow.rules" "$RULE.example"
 run udevadm control --reload-rules
 run udevadm trigger
 

@@ -655,6 +655,17 @@ def _pick_model(models, field: FlowField):
     return per_class[int(np.searchsorted(edges, g, side="right"))]
 
 
+def _model_of(field: FlowField, opts: SummaryOptions):
+    """The likelihood model :func:`summarize` fits ``field`` with, or None (IoC only): the
+    table of the field's channels, its scene-contrast class, with gradient-strength classes
+    when the histogram has them."""
+    models = _model_for(field.params, opts) if opts.likelihood else None
+    if models is None:
+        return None
+    by_class, folded = _pick_model(models, field)
+    return by_class if by_class is not None and by_class.hist_bins == field.histogram.shape[-1] else folded
+
+
 def _row_curves(model: _LikelihoodModel, hist: np.ndarray, exponent: float):
     """Log-likelihood curves of one frame's base rows with detections, shape
     ((active rows · 2 + sign) · β nodes, U) (sign 0: c > 0, 1: c < 0), with those base
@@ -862,12 +873,10 @@ def _log_likelihood_at(field: FlowField, flows, options: SummaryOptions | None =
     whether a wrong answer is a search that missed a better flow, or the table preferring
     the wrong one."""
     opts = options or _DEFAULT_OPTIONS
-    models = _model_for(field.params, opts) if opts.likelihood else None
-    if models is None or not field.ready:
+    model = _model_of(field, opts) if field.ready else None
+    if model is None:
         return None
-    by_class, folded = _pick_model(models, field)
     full = field.histogram
-    model = by_class if by_class is not None and by_class.hist_bins == full.shape[-1] else folded
     hist = full if model.classes > 1 or full.shape[-1] == ORIENTATION_BINS else (
         full.reshape(full.shape[0], full.shape[1], -1, ORIENTATION_BINS).sum(axis=2))
     curves, count, active, _ = _row_curves(model, hist, opts.row_exponent)
@@ -938,11 +947,7 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
         if field.changed_fraction[c1] <= opts.static_changed:
             return FlowSummary(0.0, 0.0, int(round(255 * q_texture * 0.75)), n, True, 1.0, 0.0)
         return FlowSummary(detections=n)
-    models = _model_for(params, opts) if opts.likelihood else None
-    model = None
-    if models is not None:  # the table of the histogram's gradient-strength classes, if any
-        by_class, folded = _pick_model(models, field)
-        model = by_class if by_class is not None and by_class.hist_bins == full.shape[-1] else folded
+    model = _model_of(field, opts)
     fit = _robust_fit(_constraints(params), used, counts, opts,
                       opts.iterations if model is None else opts.guess_iterations)
     if fit is None:

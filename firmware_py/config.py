@@ -183,7 +183,7 @@ class Config:
 
     def cautions(self) -> list[str]:
         """Settings that are valid but risky for the configured autopilot (logged as
-        warnings at start-up, see docs/spec/autopilot-links.md and the README's PX4 notes)."""
+        warnings at start-up; the README's PX4 notes, from PX4's EKF2 source)."""
         where = self.path or "configuration"
         notes = []
         if self.link.ground_distance_m is not None and self.link_autopilot() in ("px4", "both"):

@@ -15,7 +15,7 @@ import pytest
 from firmware_py.angular import focal_length_px_from_fov
 from firmware_py.clock import host_us
 from firmware_py.config import Config
-from firmware_py.sources import Frame, SourceError, make_source, open_source, parse_uri
+from firmware_py.sources import Frame, SourceConfigError, SourceError, make_source, open_source, parse_uri
 from firmware_py.sources.v4l2 import V4L2Source, raw_to_gray
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # shared helpers
 from daemon_util import flight_frames, run_isolated_from_native_crashes, write_video  # noqa: E402
@@ -262,7 +262,7 @@ def test_live_oak_without_a_first_frame_or_camera_is_a_source_error():
         source.open()
     assert pipeline.stopped                                    # not left running
     source, _ = _fake_oak(error=RuntimeError("Camera socket not found on the connected device"))
-    with pytest.raises(SourceError, match=r"this OAK has no CAM_B camera.*OAK-1 has only the colour camera"):
+    with pytest.raises(SourceConfigError, match=r"this OAK has no CAM_B camera.*OAK-1 has only the colour camera"):
         source.open()
 
 
@@ -450,12 +450,19 @@ def test_v4l2_auto_exposure_falls_back_to_full_auto():
     source.close()
 
 
-@pytest.mark.parametrize("delivered, used", [("JPEG", "MJPG"), ("BGR3", "YUYV")])
+@pytest.mark.parametrize("delivered, used", [("JPEG", "MJPG"), ("BGR3", "YUYV"), ("NV12", "GREY"),
+                                             ("YU12", "GREY")])
 def test_v4l2_pixel_format_aliases_are_read(delivered, used, caplog):
-    """JPEG is MJPG's other name; BGR3 is the driver's own conversion, read from its three
-    channels: both still give frames."""
+    """JPEG is MJPG's other name; planar 4:2:0 (NV12, YU12) starts with the luma plane, as
+    GREY does; BGR3 is the driver's own conversion, read from its three channels: all still
+    give frames."""
     luma = _luma(64, 48)
-    raw = _jpeg(luma) if delivered == "JPEG" else cv2.cvtColor(luma, cv2.COLOR_GRAY2BGR)
+    if delivered == "JPEG":
+        raw = _jpeg(luma)
+    elif delivered == "BGR3":
+        raw = cv2.cvtColor(luma, cv2.COLOR_GRAY2BGR)
+    else:  # as OpenCV hands out a raw 4:2:0 buffer: (1.5 h, w), luma first, then chroma
+        raw = np.concatenate([luma, np.full((24, 64), 128, np.uint8)])
     source = V4L2Source("0", width=64, height=48, pixel_format="YUYV",
                         capture_factory=lambda d, a: _FakeV4L2Capture(d, a, buffers=lambda i: raw, fourcc=delivered))
     source.open()
@@ -466,7 +473,7 @@ def test_v4l2_pixel_format_aliases_are_read(delivered, used, caplog):
     source.close()
 
 
-@pytest.mark.parametrize("delivered", ["Y16 ", "UYVY", "NV12"])
+@pytest.mark.parametrize("delivered", ["Y16 ", "UYVY", "Y10 "])
 def test_v4l2_pixel_format_the_source_cannot_decode_is_refused(delivered):
     """A driver that refuses the asked format falls back to its own; one raw_to_gray does
     not know would be decoded as the asked one (garbage frames that look valid)."""
@@ -857,7 +864,6 @@ def test_a_camera_that_cannot_work_as_configured_is_exit_2_at_start(caplog):
 
     import threading
 
-    from firmware_py.sources import SourceConfigError
 
     def make_daemon():
         links = []

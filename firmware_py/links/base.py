@@ -273,6 +273,11 @@ class FlowLink:
         """Shortest capture span a good report may cover, µs (0: any; see the MAVLink link)."""
         return 0.0
 
+    def _rate_ceiling_hz(self) -> float:
+        """Most reports per second the minimum span lets out, whatever the configured rate."""
+        span = self._min_report_span_us()
+        return 1e6 / span if span > 0 else math.inf
+
     def _queue_capacity(self) -> int:
         # About 0.1 s of reports (plus room for a heartbeat) before the oldest goes.
         return max(4, int(math.ceil(self.message_rate_hz * 0.1)) * self._messages_per_report() + 2)
@@ -298,7 +303,7 @@ class FlowLink:
             log.warning("%s on %s: only %.0f flow messages/s fit in %d baud; raise the baud rate",
                         self.protocol, cfg.port, rate, cfg.baud)
         log.info("%s on %s: up to %.0f flow messages/s (%d bytes each) at %d baud", self.protocol, cfg.port,
-                 rate, self._bytes_per_report(), cfg.baud)
+                 min(rate, self._rate_ceiling_hz()), self._bytes_per_report(), cfg.baud)
         return rate
 
     # -- public interface ------------------------------------------------------------

@@ -151,7 +151,7 @@ class MavlinkLink(FlowLink):
                         "(PX4 merges shorter ones up to 1/SENS_FLOW_RATE, default %.0f Hz, and averages "
                         "their qualities), so at most %.0f go out per second", self.protocol,
                         self.config.port, rate, PX4_MIN_REPORT_SPAN_US / 1e3, PX4_SENS_FLOW_RATE_HZ,
-                        PX4_SENS_FLOW_RATE_HZ)
+                        self._rate_ceiling_hz())
         return rate
 
     def _messages_per_report(self) -> int:

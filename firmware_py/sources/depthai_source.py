@@ -106,10 +106,12 @@ class DepthAISource(FrameSource):
         _, _, crop_w, crop_h = centre_crop(delivered_w, delivered_h, self.width, self.height)
         crop = (crop_w / delivered_w, crop_h / delivered_h)
         if crop != (1.0, 1.0):
-            log.warning("%s: the %s image is %dx%d, [source] asks for %dx%d (another aspect ratio): its "
-                        "centre %dx%d (%.1f %% of its width) is used; a field of view in [optics] is "
-                        "that of the whole %dx%d image", self.uri, what, delivered_w, delivered_h,
-                        self.width, self.height, crop_w, crop_h, 100.0 * crop[0], delivered_w, delivered_h)
+            # a sensor of another aspect ratio is the normal case for a camera; a file is not
+            level = logging.INFO if what == "sensor" else logging.WARNING
+            log.log(level, "%s: the %s image is %dx%d, [source] asks for %dx%d (another aspect ratio): "
+                    "its centre %dx%d (%.1f %% of its width) is used; a field of view in [optics] is "
+                    "that of the whole %dx%d image", self.uri, what, delivered_w, delivered_h,
+                    self.width, self.height, crop_w, crop_h, 100.0 * crop[0], delivered_w, delivered_h)
         return crop
 
     # -- pipeline construction: the only part that differs between camera and replay --

@@ -32,10 +32,11 @@ __all__ = ["V4L2Source", "raw_to_gray", "PIXEL_FORMATS"]
 log = logging.getLogger("emdflowd.v4l2")
 
 PIXEL_FORMATS = ("GREY", "YUYV", "MJPG")
-# What drivers also report for those: JPEG is MJPG's other name; BGR3 is a driver's own
-# conversion to BGR, which raw_to_gray reads from its three channels.
-_FORMAT_ALIASES = {"JPEG": "MJPG"}
-_DRIVER_BGR = "BGR3"
+# What drivers also report and raw_to_gray reads: JPEG is MJPG's other name; planar 4:2:0
+# formats start with the full luma plane, which is GREY's layout; BGR3 / RGB3 are a
+# driver's own conversion to colour, read from their three channels.
+_FORMAT_ALIASES = {"JPEG": "MJPG", "YU12": "GREY", "YV12": "GREY", "NV12": "GREY", "NV21": "GREY"}
+_DRIVER_COLOUR = ("BGR3", "RGB3")
 # V4L2 exposure_absolute is in units of 100 µs; V4L2_EXPOSURE_AUTO = 0, MANUAL = 1, APERTURE_PRIORITY = 3.
 _EXPOSURE_UNIT_US = 100.0
 _AUTO_EXPOSURE_FULL, _AUTO_EXPOSURE_MANUAL, _AUTO_EXPOSURE_AUTO = 0, 1, 3
@@ -199,19 +200,25 @@ class V4L2Source(FrameSource):
         got_w, got_h = (got_w, got_h) if self._size_reported else (self.width, self.height)
         got_fourcc = int(cap.get(cv2.CAP_PROP_FOURCC))
         got_fmt = got_fourcc.to_bytes(4, "little").decode("ascii", "replace") if got_fourcc > 0 else self.pixel_format
-        got_fmt = _FORMAT_ALIASES.get(got_fmt, got_fmt)
-        if got_fmt == _DRIVER_BGR:
-            log.warning("%s: asked for %s, the driver converts to BGR: gray is computed from its "
-                        "three channels", self.uri, self.pixel_format)
+        if got_fmt in _FORMAT_ALIASES:
+            if _FORMAT_ALIASES[got_fmt] != self.pixel_format:
+                log.warning("%s: asked for %s, the driver delivers %s: read as %s", self.uri,
+                            self.pixel_format, got_fmt, _FORMAT_ALIASES[got_fmt])
+            got_fmt = _FORMAT_ALIASES[got_fmt]
+            self.pixel_format = got_fmt
+        if got_fmt in _DRIVER_COLOUR:
+            log.warning("%s: asked for %s, the driver converts to colour (%s): gray is computed from "
+                        "its three channels", self.uri, self.pixel_format, got_fmt)
         elif got_fmt != self.pixel_format:
             if got_fmt not in PIXEL_FORMATS:
                 # decoding its buffers as the asked format would give garbage frames that
                 # look valid (a Y16 buffer read as GREY, UYVY as YUYV)
                 self.close()
-                raise SourceConfigError(f"{self.uri}: asked for pixel format {self.pixel_format}, the driver "
-                                  f"delivers {got_fmt!r}, which is not one of {', '.join(PIXEL_FORMATS)}; "
-                                  "set [source] pixel_format to one the camera offers "
-                                  "(v4l2-ctl --list-formats-ext)")
+                raise SourceConfigError(
+                    f"{self.uri}: asked for pixel format {self.pixel_format}, the driver delivers "
+                    f"{got_fmt!r}, which emdflow cannot read (it reads {', '.join(PIXEL_FORMATS)}, JPEG, "
+                    "planar 4:2:0 and the driver's own BGR/RGB); set [source] pixel_format to one the "
+                    "camera offers (v4l2-ctl --list-formats-ext)")
             log.warning("%s: asked for %s, the driver delivers %s", self.uri, self.pixel_format, got_fmt)
             self.pixel_format = got_fmt
         self._size = (got_w, got_h)
