@@ -296,9 +296,10 @@ class _Layout:
         return "".join(f"#define {k} {v}\n" for k, v in self.defines.items())
 
 
-#: Set to 1 to build the kernels without the PoCL/x86 compiler builtins (inline atomics,
-#: AVX2 pack and saturating intrinsics): the portable OpenCL C that GPUs and non-x86 boards
-#: run. The tests use it to check that code path for exactness on PoCL.
+#: Set to 1 to build the kernels without the PoCL/clang/x86 compiler builtins (inline
+#: atomics, clang's bit counts and constant shuffles, AVX2 pack and saturating intrinsics):
+#: the standard OpenCL C 1.2 that GPUs and non-x86 boards run. The tests use it to check
+#: that code path for exactness on PoCL.
 PORTABLE_ENV = "EMDFLOW_OPENCL_PORTABLE"
 
 
@@ -380,8 +381,9 @@ def _program(ctx, device, layout: _Layout, debug: bool):
     source = layout.header() + ("#define DEBUG_MATCHES 1\n" if debug else "")
     portable = os.environ.get(PORTABLE_ENV, "").strip() not in ("", "0")
     if not portable and "portable computing language" in device.platform.name.lower():
-        # PoCL compiles for the host CPU: compiler builtins beat its out-of-line library
-        source += "#define EMD_INLINE_ATOMICS 1\n"
+        # PoCL compiles for the host CPU with clang: compiler builtins beat its out-of-line
+        # library (atomics) and its scalarised vector shuffles
+        source += "#define EMD_INLINE_ATOMICS 1\n#define EMD_CLANG_BUILTINS 1\n"
         if device.type & _import_cl().device_type.CPU:
             source += "#define EMD_X86_BUILTINS 1\n"
     source += "\n".join(kernel_source(name) for name in _STAGES)

@@ -88,7 +88,17 @@ typedef struct __attribute__((packed)) { ulong v; } ulong_u;
 #define LOAD_W8(p) (((__global const uint8_u *)(p))->v)
 #define STORE_W8(p, x) (((__global uint8_u *)(p))->v = (x))
 #define STORE_U32(p, x) (((__global uint_u *)(p))->v = (x))
+/* Bit counts: clang's builtins on PoCL (EMD_CLANG_BUILTINS, set by the host); OpenCL C
+ * 1.2's own popcount and clz elsewhere (ctz is OpenCL 2.0: the lowest set bit's index from
+ * clz of that bit alone), so the portable kernels need no clang extension. Arguments:
+ * uint, nonzero for CTZ. */
+#ifdef EMD_CLANG_BUILTINS
 #define POPCOUNT(x) __builtin_popcount(x)
+#define CTZ(x) __builtin_ctz(x)
+#else
+#define POPCOUNT(x) popcount(x)
+#define CTZ(x) (31u - clz((x) & (0u - (x))))
+#endif
 /* PoCL 3.0 calls out of line for atomic_inc (a library call per increment); on PoCL the
  * host defines EMD_INLINE_ATOMICS and the compiler builtin becomes one `lock add`. */
 #ifdef EMD_INLINE_ATOMICS

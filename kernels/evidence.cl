@@ -84,7 +84,7 @@ __attribute__((always_inline)) inline void count_positions(__global int *positio
         if (axis) {
             where = y * POS_BINS / H;
         } else {
-            where = (i * 32 + (int)__builtin_ctz(m)) * POS_BINS / W;
+            where = (i * 32 + (int)CTZ(m)) * POS_BINS / W;
             /* lanes before the first column of the next bin, ceil((where + 1) W / POS_BINS) */
             lim = ((where + 1) * W + POS_BINS - 1) / POS_BINS - i * 32;
         }
@@ -126,7 +126,7 @@ inline void bin_detections(__global int *positions, __global int *hist, __global
 #endif
         const int row = (axis * 2 * NCH + 2 * c) * NCLASS * NBINS;
         while (m) {
-            const uint l = (uint)__builtin_ctz(m);
+            const uint l = (uint)CTZ(m);
             m &= m - 1;
             const int x = i * 32 + (int)l;
             const int negative = (int)((bs >> l) & 1u);

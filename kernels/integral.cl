@@ -13,11 +13,22 @@
  * gain of each channel over its delay (bright[BRIGHT_RATIO + c]), once per frame for all
  * the rows of ternary_states. */
 #define EMD_Z (ushort16)(0)
+/* Lane shifts (index 16: a zero lane): clang's constant shuffle on PoCL, which becomes one
+ * vpslldq (PoCL scalarises OpenCL's shuffle2); the standard shuffle2 elsewhere (OpenCL C
+ * has no variadic macros: each shift is spelled out twice). */
+#ifdef EMD_CLANG_BUILTINS
 #define SHL1(v) __builtin_shufflevector(v, EMD_Z, 16, 0, 1, 2, 3, 4, 5, 6, 16, 8, 9, 10, 11, 12, 13, 14)
 #define SHL2(v) __builtin_shufflevector(v, EMD_Z, 16, 16, 0, 1, 2, 3, 4, 5, 16, 16, 8, 9, 10, 11, 12, 13)
 #define SHL4(v) __builtin_shufflevector(v, EMD_Z, 16, 16, 16, 16, 0, 1, 2, 3, 16, 16, 16, 16, 8, 9, 10, 11)
 #define LOW7(v) __builtin_shufflevector(v, EMD_Z, 16, 16, 16, 16, 16, 16, 16, 16, 7, 7, 7, 7, 7, 7, 7, 7)
 #define ALL15(v) __builtin_shufflevector(v, v, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15)
+#else
+#define SHL1(v) shuffle2(v, EMD_Z, (ushort16)(16, 0, 1, 2, 3, 4, 5, 6, 16, 8, 9, 10, 11, 12, 13, 14))
+#define SHL2(v) shuffle2(v, EMD_Z, (ushort16)(16, 16, 0, 1, 2, 3, 4, 5, 16, 16, 8, 9, 10, 11, 12, 13))
+#define SHL4(v) shuffle2(v, EMD_Z, (ushort16)(16, 16, 16, 16, 0, 1, 2, 3, 16, 16, 16, 16, 8, 9, 10, 11))
+#define LOW7(v) shuffle2(v, EMD_Z, (ushort16)(16, 16, 16, 16, 16, 16, 16, 16, 7, 7, 7, 7, 7, 7, 7, 7))
+#define ALL15(v) shuffle2(v, v, (ushort16)(15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15))
+#endif
 
 __kernel void integral_rows(__global ushort *sat, __global ushort *dsat, int slot,
                             __global uint *bright, int p_slot)

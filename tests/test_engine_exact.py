@@ -73,6 +73,38 @@ def test_portable_kernels_are_exact_too(monkeypatch, params):
     assert _compare(width, height, frames, params) > 0
 
 
+@pytest.mark.parametrize("model", ["paper", "extended"])
+def test_portable_kernels_are_standard_opencl_c_1_2(monkeypatch, tmp_path, model):
+    """What a GPU or ARM board's own OpenCL compiler gets is OpenCL C 1.2 without compiler
+    extensions (no clang builtins beyond the standard as_type, no variadic macros): clang
+    in strict 1.2 mode for the SPIR target, pedantic, warns about nothing. Skipped where no
+    clang is installed (Debian's PoCL brings one)."""
+    import shutil
+    import subprocess
+
+    clang = next((c for c in ("clang", "clang-15", "clang-16", "clang-17", "clang-14") if shutil.which(c)), None)
+    if clang is None:
+        pytest.skip("no clang to check the portable kernels with")
+    monkeypatch.setenv(opencl_backend.PORTABLE_ENV, "1")
+    sources = []
+    real_build = opencl_backend._build
+
+    def capture(cl, ctx, device, source):
+        sources.append(source)
+        return real_build(cl, ctx, device, source)
+
+    monkeypatch.setattr(opencl_backend, "_build", capture)
+    monkeypatch.setattr(opencl_backend, "_PROGRAMS", {})  # build here, not from this process's cache
+    opencl_backend.OpenCLEngine(97, 61, EngineParams(**MODELS[model]))
+    assert sources and "#define EMD_CLANG_BUILTINS" not in sources[0]
+    path = tmp_path / "portable.cl"
+    path.write_text(sources[0])
+    result = subprocess.run([clang, "-x", "cl", "-cl-std=CL1.2", "-target", "spir", "-Xclang",
+                             "-finclude-default-header", "-fsyntax-only", "-Wall", "-pedantic", str(path)],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0 and "warning" not in result.stderr, result.stderr[-2000:]
+
+
 @pytest.mark.parametrize("size", [(661, 37), (1283, 21)])
 def test_wide_frames(size):
     # from 640 px the summary's evidence samples every 2nd (from 1280 every 4th) column
