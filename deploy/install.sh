@@ -51,6 +51,7 @@ Options:
                        like python3.11 is installed with apt too (with PY-venv)
   --start              start the service at the end (default: enable only)
   --source DIR         project checkout to install from (default $SRC)
+  --udev-dir DIR       where the udev rule goes (default $UDEV_DIR)
 EOF
 }
 
@@ -64,6 +65,7 @@ while [ $# -gt 0 ]; do
         --python) PYTHON="$2"; shift ;;
         --start) START=1 ;;
         --source) SRC="$2"; shift ;;
+        --udev-dir) UDEV_DIR="$2"; shift ;;
         -h|--help) usage; exit 0 ;;
         *) echo "install.sh: unknown option '$1' (see --help)" >&2; exit 2 ;;
     esac

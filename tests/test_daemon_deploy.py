@@ -220,3 +220,27 @@ def test_install_adds_the_service_user_to_render_where_that_group_exists(tmp_pat
     without = subprocess.run(["bash", str(DEPLOY / "install.sh"), "--dry-run"], capture_output=True, text=True,
                              timeout=60, env=env)
     assert "--groups video,dialout emdflow" in without.stdout
+
+
+def test_install_updates_an_unedited_udev_rule_and_keeps_an_edited_one(tmp_path):
+    """The rule is meant to be edited: one equal to the example the last install shipped
+    (kept beside it) is updated, one that differs from it stays, like the configuration."""
+    shipped = (DEPLOY / "99-emdflow.rules").read_text()
+    udev = tmp_path / "rules.d"
+    udev.mkdir()
+    rule, example = udev / "99-emdflow.rules", udev / "99-emdflow.rules.example"
+
+    def install():
+        out = _dry_run("--udev-dir", udev).stdout
+        return out[out.index("== 6/7"):out.index("== 7/7")]
+
+    assert f"install -m 0644 {DEPLOY}/99-emdflow.rules {rule}\n" in install()       # none yet
+    rule.write_text("# an older example\n")
+    example.write_text("# an older example\n")
+    assert f"{rule}\n" in install() and "keeping" not in install()                   # unedited: updated
+    rule.write_text("# an older example\nSUBSYSTEM==\"tty\", SYMLINK+=\"emdflow-fc\"\n")
+    step = install()
+    assert f"keeping {rule}" in step and f"0644 {DEPLOY}/99-emdflow.rules {rule}\n" not in step
+    assert f"{example}" in step                                                      # the new example beside it
+    rule.write_text(shipped)
+    assert "keeping" not in install()                                                # already current
