@@ -230,7 +230,11 @@ class FlowEstimator:
         :func:`emdflow.opencl_devices` names it (the automatic choice may pass over devices
         that cannot build the kernels); None on the numpy backend."""
         dev = getattr(self._engine, "device", None)
-        return None if dev is None else f"{dev.platform.name.strip()}: {dev.name.strip()}"
+        if dev is None:
+            return None
+        from .opencl_backend import device_label
+
+        return device_label(dev)
 
     @property
     def frames_seen(self) -> int:

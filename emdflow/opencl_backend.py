@@ -95,7 +95,13 @@ def _all_devices():
 def list_devices() -> list[tuple[int, str]]:
     """The OpenCL devices as ``[(index, "platform: device"), ...]`` (whether or not they
     can build the kernels: see :func:`_first_buildable`)."""
-    return [(i, f"{d.platform.name.strip()}: {d.name.strip()}") for i, d in enumerate(_all_devices())]
+    return [(i, device_label(d)) for i, d in enumerate(_all_devices())]
+
+
+def device_label(device) -> str:
+    """``"platform: device"``, the name :func:`list_devices` and :attr:`FlowEstimator.device`
+    give a device (``emdflow devices`` matches the two)."""
+    return f"{device.platform.name.strip()}: {device.name.strip()}"
 
 
 def _device_choice(device):
@@ -116,7 +122,7 @@ def _pick_device(choice):
     for d in devices:
         if str(choice).lower() in f"{d.platform.name} {d.name}".lower():
             return d
-    names = ", ".join(f"{d.platform.name.strip()}: {d.name.strip()}" for d in devices)
+    names = ", ".join(device_label(d) for d in devices)
     raise ValueError(f"OpenCL device {choice!r} not found among: {names}")
 
 

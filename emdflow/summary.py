@@ -655,6 +655,14 @@ def _pick_model(models, field: FlowField):
     return per_class[int(np.searchsorted(edges, g, side="right"))]
 
 
+def _classes_summed(hist: np.ndarray) -> np.ndarray:
+    """The detection histogram with its gradient-strength classes added up (what the IoC
+    guess and a table without classes read); itself when it has no classes."""
+    if hist.shape[-1] == ORIENTATION_BINS:
+        return hist
+    return hist.reshape(hist.shape[0], hist.shape[1], -1, ORIENTATION_BINS).sum(axis=2)
+
+
 def _model_of(field: FlowField, opts: SummaryOptions):
     """The likelihood model :func:`summarize` fits ``field`` with, or None (IoC only): the
     table of the field's channels, its scene-contrast class, with gradient-strength classes
@@ -877,9 +885,8 @@ def _log_likelihood_at(field: FlowField, flows, options: SummaryOptions | None =
     if model is None:
         return None
     full = field.histogram
-    hist = full if model.classes > 1 or full.shape[-1] == ORIENTATION_BINS else (
-        full.reshape(full.shape[0], full.shape[1], -1, ORIENTATION_BINS).sum(axis=2))
-    curves, count, active, _ = _row_curves(model, hist, opts.row_exponent)
+    curves, count, active, _ = _row_curves(model, full if model.classes > 1 else _classes_summed(full),
+                                           opts.row_exponent)
     if active < 2 or count < opts.min_detections:  # summarize() keeps the IoC fit there
         return None
     point = (np.zeros(1), np.zeros(1), 1, np.ones(1, np.float32), np.array([_PAD]))
@@ -932,8 +939,7 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
     q_texture = min(1.0, textured / opts.full_textured)
     # the IoC guess (and a table without gradient-strength classes) sums the classes
     full = field.histogram
-    hist = full if full.shape[-1] == ORIENTATION_BINS else (
-        full.reshape(full.shape[0], full.shape[1], -1, ORIENTATION_BINS).sum(axis=2))
+    hist = _classes_summed(full)
     flat = hist.ravel()
     used = np.flatnonzero(flat != 0)
     counts = flat[used].astype(np.float64)

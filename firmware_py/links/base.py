@@ -226,6 +226,9 @@ class FlowLink:
     #: The autopilot declares the sensor lost after this long without a message, s
     #: (ArduPilot: 0.5 s).
     autopilot_timeout_s = 0.5
+    #: Shortest capture span a good report may cover, µs (0: any; the MAVLink link sets it
+    #: before this class's __init__ for PX4's message sets).
+    min_report_span_us = 0.0
 
     def __init__(self, config: LinkConfig):
         self.config = config
@@ -269,14 +272,9 @@ class FlowLink:
     def _reserved_bytes_per_s(self) -> float:
         return 0.0
 
-    def _min_report_span_us(self) -> float:
-        """Shortest capture span a good report may cover, µs (0: any; see the MAVLink link)."""
-        return 0.0
-
     def _rate_ceiling_hz(self) -> float:
         """Most reports per second the minimum span lets out, whatever the configured rate."""
-        span = self._min_report_span_us()
-        return 1e6 / span if span > 0 else math.inf
+        return 1e6 / self.min_report_span_us if self.min_report_span_us > 0 else math.inf
 
     def _queue_capacity(self) -> int:
         # About 0.1 s of reports (plus room for a heartbeat) before the oldest goes.
@@ -398,7 +396,7 @@ class FlowLink:
             # Emit on frame boundaries: a quarter-frame tolerance keeps e.g. 50 Hz at 100 fps
             # from slipping to every third frame on jitter.
             tolerance = 0.25 * (integ.nominal_interval_us or 0.0)
-            due = max(self.period_us - tolerance, self._min_report_span_us())
+            due = max(self.period_us - tolerance, self.min_report_span_us)
             if integ.elapsed_us > 0 and integ.elapsed_us >= due:
                 interval = integ.take()
                 if self._keepalive_in_interval:

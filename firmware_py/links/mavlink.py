@@ -110,6 +110,8 @@ class MavlinkLink(FlowLink):
             self.message_set = MESSAGE_SETS[config.autopilot]
         else:
             self.message_set = MESSAGE_SETS.get(config.autopilot, MESSAGE_SETS["both"])
+        # PX4 merges shorter OPTICAL_FLOW_RAD reports (see PX4_SENS_FLOW_RATE_HZ)
+        self.min_report_span_us = PX4_MIN_REPORT_SPAN_US if "OPTICAL_FLOW_RAD" in self.message_set else 0.0
         self.encoder = new_encoder(sysid=config.sysid, compid=config.compid)
         self._rx = self._new_parser()
         self._dpix_carry = [0.0, 0.0]
@@ -139,14 +141,11 @@ class MavlinkLink(FlowLink):
         return WIRE_BYTES["HEARTBEAT"] * self.config.heartbeat_rate_hz + extras
 
     def _default_rate_cap(self) -> float:
-        return PX4_SENS_FLOW_RATE_HZ if "OPTICAL_FLOW_RAD" in self.message_set else 100.0
-
-    def _min_report_span_us(self) -> float:
-        return PX4_MIN_REPORT_SPAN_US if "OPTICAL_FLOW_RAD" in self.message_set else 0.0
+        return PX4_SENS_FLOW_RATE_HZ if self.min_report_span_us else 100.0
 
     def _choose_rate(self) -> float:
         rate = super()._choose_rate()
-        if "OPTICAL_FLOW_RAD" in self.message_set and rate > PX4_SENS_FLOW_RATE_HZ:
+        if self.min_report_span_us and rate > PX4_SENS_FLOW_RATE_HZ:
             log.warning("%s on %s: message_rate_hz %.0f: OPTICAL_FLOW_RAD reports span at least %.1f ms "
                         "(PX4 merges shorter ones up to 1/SENS_FLOW_RATE, default %.0f Hz, and averages "
                         "their qualities), so at most %.0f go out per second", self.protocol,
