@@ -22,7 +22,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-__all__ = ["TEXTURES", "MIN_SIDE", "load_texture", "CameraFlight", "FlightTruth"]
+__all__ = ["TEXTURES", "MIN_SIDE", "load_texture", "CameraFlight", "FlightTruth", "RotatingCamera"]
 
 #: Smallest frame side :class:`CameraFlight` renders, px.
 MIN_SIDE = 8
@@ -324,3 +324,88 @@ class CameraFlight:
     def render_many(self, count: int, start: int = 0) -> np.ndarray:
         """Render ``count`` frames as an array of shape (count, height, width)."""
         return np.stack(list(self.frames(count, start)))
+
+
+class RotatingCamera:
+    """A pinhole camera turning in place over a textured scene, with exact ground truth.
+
+    The camera (focal length ``focal_length_px``, no lens distortion) turns about a fixed
+    axis through its centre at a constant rate, chosen so that the image moves by ``flow``
+    px/frame *at the image centre*. This is what an autopilot compares with its gyro: for
+    a pure rotation the angular flow at the optical axis is the body rate. Away from the
+    centre a pinhole image moves faster — along the flow by the factor ``1 + X²`` at
+    normalised coordinate ``X = x / f`` — so a wide lens sees the same turn as faster
+    motion at its edges. (A translation over flat ground, :class:`CameraFlight`, moves the
+    whole image alike.) For a pure rotation the image transformation is the homography
+    ``K R K⁻¹`` whatever the scene's depth; frame 0 shows the texture (reflected past its
+    borders) at one texture pixel per image pixel at the centre.
+
+    Rendering, noise and ``seed`` are as in :class:`CameraFlight`: supersampled,
+    area-averaged down, Gaussian noise of ``noise_sigma`` gray levels.
+
+    Raises
+    ------
+    ValueError
+        If a side is below :data:`MIN_SIDE` px, ``focal_length_px`` is not positive, a
+        number is NaN or infinite, or the flow would turn the camera by 45° or more per
+        frame (naming the parameter).
+    """
+
+    def __init__(self, texture: str = "gravel", *, width: int = 320, height: int = 240,
+                 focal_length_px: float = 320.0, flow: tuple[float, float] = (3.0, 0.0),
+                 noise_sigma: float = 2.0, supersample: int = 4, seed: int = 0):
+        if width < MIN_SIDE or height < MIN_SIDE:
+            raise ValueError(f"frame size {width}x{height}: both sides must be at least {MIN_SIDE} px")
+        if supersample < 1:
+            raise ValueError(f"supersample={supersample}: must be >= 1")
+        self.focal_length_px = _finite("focal_length_px", focal_length_px)
+        if self.focal_length_px <= 0.0:
+            raise ValueError(f"focal_length_px={focal_length_px!r}: must be > 0")
+        self.flow = _finite_pair("flow", flow, "px/frame")
+        # the turn per frame that moves the centre by |flow|: f tan(angle) = |flow|
+        self.angle_per_frame = math.atan(math.hypot(*self.flow) / self.focal_length_px)
+        if self.angle_per_frame >= math.radians(45.0):
+            raise ValueError(f"flow={flow}: turns the camera by 45 deg or more per frame at "
+                             f"focal_length_px={focal_length_px:g}")
+        self.noise_sigma = _finite("noise_sigma", noise_sigma)
+        self.texture_name = str(texture)
+        self.texture = load_texture(texture)
+        self.width, self.height = int(width), int(height)
+        self.supersample = int(supersample)
+        self.seed = int(seed)
+        # the centre's ray after one frame must point at the ray that showed the ground
+        # now at the centre, i.e. towards (-u, -v, f): axis = z x (-u, -v, f)
+        u, v = self.flow
+        axis = np.array([v, -u, 0.0])
+        norm = float(np.linalg.norm(axis))
+        self._axis = axis / norm if norm > 0 else np.array([0.0, 1.0, 0.0])
+
+    def truth(self, t: int) -> FlightTruth:
+        """Ground truth of frame ``t``: the image motion at the centre (px/frame)."""
+        return FlightTruth(self.flow[0], self.flow[1], 0.0)
+
+    def render(self, t: int) -> np.ndarray:
+        """Render frame ``t`` as a 2-D uint8 array of shape (height, width)."""
+        s, f = self.supersample, self.focal_length_px
+        W, H = self.width * s, self.height * s
+        R, _ = cv2.Rodrigues(self._axis * (self.angle_per_frame * int(t)))
+        th, tw = self.texture.shape
+        # supersampled output pixel -> image coordinates about the centre -> ray -> turned
+        # ray -> frame 0's image -> texture pixel (centre of the texture at the centre)
+        to_image = np.array([[1.0 / s, 0.0, 0.5 / s - self.width / 2.0],
+                             [0.0, 1.0 / s, 0.5 / s - self.height / 2.0], [0.0, 0.0, 1.0]])
+        K, K_inv = np.diag([f, f, 1.0]), np.diag([1.0 / f, 1.0 / f, 1.0])
+        to_texture = np.array([[1.0, 0.0, tw / 2.0 - 0.5], [0.0, 1.0, th / 2.0 - 0.5], [0.0, 0.0, 1.0]])
+        M = to_texture @ K @ R @ K_inv @ to_image
+        fine = cv2.warpPerspective(self.texture, M, (W, H), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                   borderMode=cv2.BORDER_REFLECT_101)
+        image = cv2.resize(fine, (self.width, self.height), interpolation=cv2.INTER_AREA).astype(np.float32)
+        if self.noise_sigma > 0:
+            rng = np.random.default_rng(self.seed + int(t))
+            image += rng.normal(0.0, self.noise_sigma, image.shape).astype(np.float32)
+        return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+    def frames(self, count: int, start: int = 0):
+        """Yield ``count`` consecutive frames starting at index ``start``."""
+        for t in range(start, start + count):
+            yield self.render(t)

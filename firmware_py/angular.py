@@ -63,6 +63,8 @@ from dataclasses import dataclass
 
 __all__ = [
     "focal_length_px_from_fov",
+    "turn_gain",
+    "TURN_GAIN_WARNING",
     "apply_mounting",
     "FlowInterval",
     "FlowIntegrator",
@@ -135,6 +137,30 @@ def focal_length_px_from_fov(*, fov_deg: float, size_px: float) -> float:
     if size_px <= 0:
         raise ValueError(f"image size must be positive, got {size_px} px")
     return 0.5 * size_px / math.tan(math.radians(fov_deg) / 2.0)
+
+
+#: Above this even-spread gain on turns (:func:`turn_gain`) the daemon warns at start-up.
+TURN_GAIN_WARNING = 1.10
+
+
+def turn_gain(*, width: int, height: int, focal_length_px: float) -> tuple[float, float]:
+    """How much faster a turn reads than the body rate, along x and along y, for a
+    distortion-free lens whose image is ``width`` × ``height`` px at focal length
+    ``focal_length_px`` (all at the processed resolution).
+
+    The summary fits one flow to detections from the whole image. A translation over flat
+    ground moves the image alike everywhere, a turn moves a pinhole image faster away from
+    the centre (along the flow by ``1 + X²``, ``X = x / f``), and the autopilot expects
+    the rate at the optical axis. For detections spread evenly over the frame the mean
+    gain is ``1 + (W / 2f)² / 3`` along x and ``1 + (H / 2f)² / 3`` along y; measured on
+    rendered turns (``python -m emdflow.tools.rotation_eval``) the summary's gain is within
+    ~0.04 of it from 30° to 90° of horizontal field of view. Barrel distortion lowers it.
+    """
+    if not (focal_length_px > 0 and width > 0 and height > 0):
+        raise ValueError(f"turn_gain: width={width}, height={height}, focal_length_px={focal_length_px}: "
+                         "all must be > 0")
+    return (1.0 + (width / (2.0 * focal_length_px)) ** 2 / 3.0,
+            1.0 + (height / (2.0 * focal_length_px)) ** 2 / 3.0)
 
 
 def apply_mounting(u: float, v: float, *, rotation_deg: int = 0, mirror: bool = False) -> tuple[float, float]:

@@ -34,7 +34,7 @@ import numpy as np
 import emdflow
 from emdflow.cues import looming_cues
 
-from .angular import RecentIntervals
+from .angular import TURN_GAIN_WARNING, RecentIntervals, turn_gain
 from .clock import host_us
 from .config import Config, ConfigError
 from .links import FlowSample
@@ -533,6 +533,18 @@ class Daemon:
         return self.config.focal_length_px(self.width / source.crop_fraction[0],
                                            source.default_focal_length_px)
 
+    def _warn_of_a_wide_lens(self) -> None:
+        """A wide lens reads turns faster than the body rate (angular.turn_gain): say by how
+        much, once, where the autopilot would take the excess for motion."""
+        gx, gy = turn_gain(width=self.width, height=self.height, focal_length_px=self.focal_length_px)
+        if max(gx, gy) > TURN_GAIN_WARNING:
+            fov = math.degrees(2.0 * math.atan(self.width / (2.0 * self.focal_length_px)))
+            log.warning("focal length %.1f px at %dx%d (horizontal field of view %.0f deg): a turn of the "
+                        "vehicle reads about %.2fx (x) and %.2fx (y) its body rate for a distortion-free "
+                        "lens, and the autopilot takes the excess for motion; a narrower lens or a "
+                        "centre crop lowers it (README, \"Wide lenses and turns\")",
+                        self.focal_length_px, self.width, self.height, fov, gx, gy)
+
     def _source_opened(self, source: FrameSource) -> None:
         """A source the keeper opened later (absent at start, or reopened): if it delivers
         another image than the focal length was computed for, the link converts with the
@@ -587,6 +599,7 @@ class Daemon:
                      self.config.source.uri, self.width, self.height, self.fps, self.focal_length_px,
                      self.config.engine.backend, self.config.link_autopilot(), self.config.link.port,
                      self.config.link.baud, self.mode)
+            self._warn_of_a_wide_lens()
             if self.mode == "capture-thread":
                 # Files read as fast as possible get back-pressure instead of drops.
                 mailbox = FrameMailbox(block=not self.live and not self.config.source.realtime)

@@ -282,3 +282,26 @@ def test_camera_without_focal_length_is_a_config_error():
     result = run_cli(["--source", "v4l2:/dev/video7", "--serial", "/dev/null"], timeout=60)
     assert result.returncode == 2
     assert "is a camera: give --focal-length-px F or [optics] focal_length_px" in result.stderr
+
+
+def test_a_wide_lens_is_named_at_start_up_with_its_gain_on_turns(tmp_path, caplog):
+    caplog.set_level(logging.INFO, logger="emdflowd")
+
+    def factory():
+        return make_source("synthetic:u=2,v=1", width=96, height=72, fps=100)
+
+    config = Config()
+    config.set("source", "uri", "synthetic:u=2,v=1")
+    config.set("source", "width", 96)
+    config.set("source", "height", 72)
+    config.set("engine", "backend", engine_backend())
+    config.set("daemon", "threading", "single")
+    config.set("optics", "horizontal_fov_deg", 73.0)  # an OAK-D mono camera's
+    code, _, _ = run_daemon(config, frames=5, source_factory=factory)
+    assert code == 0
+    assert "(horizontal field of view 73 deg): a turn of the vehicle reads about 1.18x (x) and 1.10x (y)" \
+        in caplog.text
+    caplog.clear()
+    config.set("optics", "horizontal_fov_deg", 45.0)  # gains 1.06 / 1.03: no warning
+    code, _, _ = run_daemon(config, frames=5, source_factory=factory)
+    assert code == 0 and "a turn of the vehicle reads" not in caplog.text
