@@ -337,8 +337,11 @@ class RotatingCamera:
     normalised coordinate ``X = x / f`` — so a wide lens sees the same turn as faster
     motion at its edges. (A translation over flat ground, :class:`CameraFlight`, moves the
     whole image alike.) For a pure rotation the image transformation is the homography
-    ``K R K⁻¹`` whatever the scene's depth; frame 0 shows the texture (reflected past its
-    borders) at one texture pixel per image pixel at the centre.
+    ``K R K⁻¹`` whatever the scene's depth; frame ``reference_frame`` shows the texture
+    (reflected past its borders, as seen square-on) at one texture pixel per image pixel
+    at the centre, and the camera is tilted by the turn's angle × ``t − reference_frame``
+    from it at frame ``t``: put it in the middle of the frames you measure, so that they
+    see the texture about as a translation flight does.
 
     Rendering, noise and ``seed`` are as in :class:`CameraFlight`: supersampled,
     area-averaged down, Gaussian noise of ``noise_sigma`` gray levels.
@@ -348,12 +351,18 @@ class RotatingCamera:
     ValueError
         If a side is below :data:`MIN_SIDE` px, ``focal_length_px`` is not positive, a
         number is NaN or infinite, or the flow would turn the camera by 45° or more per
-        frame (naming the parameter).
+        frame (naming the parameter); :meth:`render` when a corner of the frame looks
+        more than :attr:`MAX_RAY_TILT_DEG` away from the reference view's axis (towards
+        its horizon, where the texture would be rendered mirrored).
     """
+
+    #: Steepest ray (degrees from the reference view's axis) :meth:`render` accepts.
+    MAX_RAY_TILT_DEG = 75.0
 
     def __init__(self, texture: str = "gravel", *, width: int = 320, height: int = 240,
                  focal_length_px: float = 320.0, flow: tuple[float, float] = (3.0, 0.0),
-                 noise_sigma: float = 2.0, supersample: int = 4, seed: int = 0):
+                 noise_sigma: float = 2.0, supersample: int = 4, seed: int = 0,
+                 reference_frame: int = 0):
         if width < MIN_SIDE or height < MIN_SIDE:
             raise ValueError(f"frame size {width}x{height}: both sides must be at least {MIN_SIDE} px")
         if supersample < 1:
@@ -373,6 +382,7 @@ class RotatingCamera:
         self.width, self.height = int(width), int(height)
         self.supersample = int(supersample)
         self.seed = int(seed)
+        self.reference_frame = int(reference_frame)
         # the centre's ray after one frame must point at the ray that showed the ground
         # now at the centre, i.e. towards (-u, -v, f): axis = z x (-u, -v, f)
         u, v = self.flow
@@ -381,14 +391,23 @@ class RotatingCamera:
         self._axis = axis / norm if norm > 0 else np.array([0.0, 1.0, 0.0])
 
     def truth(self, t: int) -> FlightTruth:
-        """Ground truth of frame ``t``: the image motion at the centre (px/frame)."""
+        """Ground truth of frame ``t``: the image motion **at the centre** (px/frame); away
+        from it a turn moves the image faster (see the class), unlike the translation
+        flights' uniform ``flow_x, flow_y``."""
         return FlightTruth(self.flow[0], self.flow[1], 0.0)
 
     def render(self, t: int) -> np.ndarray:
         """Render frame ``t`` as a 2-D uint8 array of shape (height, width)."""
         s, f = self.supersample, self.focal_length_px
         W, H = self.width * s, self.height * s
-        R, _ = cv2.Rodrigues(self._axis * (self.angle_per_frame * int(t)))
+        R, _ = cv2.Rodrigues(self._axis * (self.angle_per_frame * (int(t) - self.reference_frame)))
+        corners = np.array([[x / f, y / f, 1.0] for x in (-self.width / 2.0, self.width / 2.0)
+                            for y in (-self.height / 2.0, self.height / 2.0)]) @ R.T
+        tilt = np.degrees(np.arccos(corners[:, 2] / np.linalg.norm(corners, axis=1))).max()
+        if tilt > self.MAX_RAY_TILT_DEG:
+            raise ValueError(f"frame {t}: a corner looks {tilt:.0f} deg from the reference view's axis "
+                             f"(more than {self.MAX_RAY_TILT_DEG:g}): the turn has gone too far from "
+                             f"reference_frame={self.reference_frame}")
         th, tw = self.texture.shape
         # supersampled output pixel -> image coordinates about the centre -> ray -> turned
         # ray -> frame 0's image -> texture pixel (centre of the texture at the centre)

@@ -535,14 +535,16 @@ class Daemon:
 
     def _warn_of_a_wide_lens(self) -> None:
         """A wide lens reads turns faster than the body rate (angular.turn_gain): say by how
-        much, once, where the autopilot would take the excess for motion."""
+        much where the mean over directions exceeds TURN_GAIN_WARNING, for the image the
+        engine processes (at start, and again when a reopened camera changes it)."""
         gx, gy = turn_gain(width=self.width, height=self.height, focal_length_px=self.focal_length_px)
-        if max(gx, gy) > TURN_GAIN_WARNING:
+        if (gx + gy) / 2.0 > TURN_GAIN_WARNING:
             fov = math.degrees(2.0 * math.atan(self.width / (2.0 * self.focal_length_px)))
-            log.warning("focal length %.1f px at %dx%d (horizontal field of view %.0f deg): a turn of the "
-                        "vehicle reads about %.2fx (x) and %.2fx (y) its body rate for a distortion-free "
-                        "lens, and the autopilot takes the excess for motion; a narrower lens or a "
-                        "centre crop lowers it (README, \"Wide lenses and turns\")",
+            log.warning("focal length %.1f px at %dx%d (the processed image's horizontal field of view "
+                        "%.0f deg): a turn of the vehicle reads about %.2fx (x) and %.2fx (y) its body rate "
+                        "for a distortion-free lens, and the autopilot takes the excess for motion; a "
+                        "narrower lens or a centre crop lowers it, and a flow scaler calibrated from turns "
+                        "would scale translations down (README, \"Wide lenses and turns\")",
                         self.focal_length_px, self.width, self.height, fov, gx, gy)
 
     def _source_opened(self, source: FrameSource) -> None:
@@ -556,6 +558,7 @@ class Daemon:
             self.focal_length_px = focal
             if self.link is not None:
                 self.link.set_focal_length_px(focal)
+            self._warn_of_a_wide_lens()
 
     def _warm_up(self, t0: float) -> None:
         """Run the engine on blank frames once: kernels are built and buffers allocated

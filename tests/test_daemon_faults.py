@@ -296,12 +296,15 @@ def test_a_wide_lens_is_named_at_start_up_with_its_gain_on_turns(tmp_path, caplo
     config.set("source", "height", 72)
     config.set("engine", "backend", engine_backend())
     config.set("daemon", "threading", "single")
-    config.set("optics", "horizontal_fov_deg", 73.0)  # an OAK-D mono camera's
+    config.set("optics", "horizontal_fov_deg", 73.0)
     code, _, _ = run_daemon(config, frames=5, source_factory=factory)
     assert code == 0
-    assert "(horizontal field of view 73 deg): a turn of the vehicle reads about 1.18x (x) and 1.10x (y)" \
-        in caplog.text
+    assert "(the processed image's horizontal field of view 73 deg): a turn of the vehicle reads about " \
+        "1.18x (x) and 1.10x (y)" in caplog.text
     caplog.clear()
     config.set("optics", "horizontal_fov_deg", 45.0)  # gains 1.06 / 1.03: no warning
     code, _, _ = run_daemon(config, frames=5, source_factory=factory)
     assert code == 0 and "a turn of the vehicle reads" not in caplog.text
+    config.set("optics", "horizontal_fov_deg", None)  # the synthetic source's f = width: 53 deg
+    code, daemon, _ = run_daemon(config, frames=5, source_factory=factory)
+    assert code == 0 and daemon.focal_length_px == 96 and "a turn of the vehicle reads" not in caplog.text

@@ -44,6 +44,12 @@ def test_rotating_camera_refuses_bad_parameters():
         RotatingCamera(focal_length_px=10.0, flow=(20.0, 0.0))
     with pytest.raises(ValueError, match="frame size"):
         RotatingCamera(width=4)
+    # 6 deg per frame: frame 10 looks 60 deg + the corner's 32 deg away from frame 0's axis
+    cam = RotatingCamera(focal_length_px=200.0, flow=(21.0, 0.0), noise_sigma=0.0)
+    cam.render(5)
+    with pytest.raises(ValueError, match="frame 10: a corner looks"):
+        cam.render(10)
+    assert RotatingCamera(focal_length_px=200.0, flow=(21.0, 0.0), reference_frame=10).render(10).shape == (240, 320)
 
 
 def test_turn_gain_is_the_even_spread_pinhole_mean():

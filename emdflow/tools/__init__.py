@@ -18,6 +18,9 @@ calibrate_summary
 zoom_eval
     ``python -m emdflow.tools.zoom_eval``: the expansion-rate cue on zoom flights (measure,
     calibrate).
+rotation_eval
+    ``python -m emdflow.tools.rotation_eval``: how much faster a turn reads than a
+    translation on a wide lens, per field of view.
 engine_ab
     ``python -m emdflow.tools.engine_ab CHECKOUT``: the OpenCL engine against another
     checkout's, alternating in one process (speed changes of a few percent).

@@ -16,7 +16,11 @@ translation (:class:`emdflow.synthetic.CameraFlight`) and a pure turn of a disto
 pinhole camera (:class:`emdflow.synthetic.RotatingCamera`), both with the same flow at the
 image centre, in four directions (right, down, and the two diagonals), and prints the
 median speed the summary reads over the true centre speed for each, their ratio (the
-lens's gain on turns as the summary sees it) and the even-spread prediction::
+lens's gain on turns as the summary sees it, over the four directions) and the even-spread
+prediction averaged over the same directions, ``1 + ((g_x − 1) + (g_y − 1)) / 2``. The turn
+is square-on to the texture in the middle of the measured frames
+(``RotatingCamera(reference_frame=…)``), so its frames see the ground about as the
+translation's do::
 
     python -m emdflow.tools.rotation_eval                 # extended model, ~7 s on 2 cores (OpenCL)
     python -m emdflow.tools.rotation_eval --model paper --fovs 40,73 --speed 5
@@ -37,6 +41,7 @@ import time
 import numpy as np
 
 from emdflow.params import MODELS
+from emdflow.tools import number_list
 
 DEFAULT_FOVS = (30.0, 45.0, 60.0, 73.0, 90.0)
 DEFAULT_TEXTURES = ("gravel", "grass", "camera")
@@ -45,9 +50,10 @@ DIRECTIONS_DEG = (0.0, 90.0, 45.0, 135.0)
 
 
 def pinhole_gain(fov_deg: float, width: int, height: int, direction_deg: float) -> float:
-    """Mean gain of a turn's flow along its direction over a pinhole image whose
+    """Mean gain of a turn's flow along its direction θ over a pinhole image whose
     horizontal field of view is ``fov_deg``, for detections spread evenly over the frame:
-    ``1 + (cos²θ (W/2)² + sin²θ (H/2)²) / (3 f²)``."""
+    ``1 + (cos²θ (W/2)² + sin²θ (H/2)²) / (3 f²)``, i.e. ``1 + cos²θ (g_x − 1) + sin²θ
+    (g_y − 1)`` with ``firmware_py.angular.turn_gain``'s per-axis gains."""
     f = width / 2.0 / math.tan(math.radians(fov_deg) / 2.0)
     c, s = math.cos(math.radians(direction_deg)), math.sin(math.radians(direction_deg))
     return 1.0 + (c * c * (width / 2.0) ** 2 + s * s * (height / 2.0) ** 2) / (3.0 * f * f)
@@ -80,23 +86,30 @@ def evaluate(*, model: str = "extended", fovs=DEFAULT_FOVS, textures=DEFAULT_TEX
         raise ValueError(f"model={model!r}: expected one of {', '.join(MODELS)}")
     if not speed > 0:
         raise ValueError(f"speed={speed!r}: must be > 0 px/frame")
+    if frames < 1:
+        raise ValueError(f"frames={frames!r}: must be at least 1")
     estimator = emdflow.FlowEstimator(width, height, backend=backend, **MODELS[model])
     skip = estimator.params.history_frames + 1
+    def flights(texture):  # (flow, keywords) per direction
+        for i, direction in enumerate(DIRECTIONS_DEG):
+            flow = (speed * math.cos(math.radians(direction)), speed * math.sin(math.radians(direction)))
+            yield direction, {"width": width, "height": height, "flow": flow, "noise_sigma": noise,
+                              "supersample": supersample, "seed": 1000 * i + 7}
+
+    # translations read the same at every field of view: flown once per texture
+    moved = {texture: [speed_read for _, common in flights(texture) for speed_read in
+                       _read_speeds(CameraFlight(texture, **common).frames(skip + frames), estimator, skip)]
+             for texture in textures}
     rows = []
     for fov in fovs:
         f = width / 2.0 / math.tan(math.radians(float(fov)) / 2.0)
         for texture in textures:
-            moved, turned, gains = [], [], []
-            for i, direction in enumerate(DIRECTIONS_DEG):
-                flow = (speed * math.cos(math.radians(direction)), speed * math.sin(math.radians(direction)))
-                common = {"width": width, "height": height, "flow": flow, "noise_sigma": noise,
-                          "supersample": supersample, "seed": 1000 * i + 7}
-                flight = CameraFlight(texture, **common)
-                camera = RotatingCamera(texture, focal_length_px=f, **common)
-                moved += _read_speeds(flight.frames(skip + frames), estimator, skip)
+            turned, gains = [], []
+            for direction, common in flights(texture):
+                camera = RotatingCamera(texture, focal_length_px=f, reference_frame=skip + frames // 2, **common)
                 turned += _read_speeds(camera.frames(skip + frames), estimator, skip)
                 gains.append(pinhole_gain(fov, width, height, direction))
-            m, r = float(np.median(moved)) / speed, float(np.median(turned)) / speed
+            m, r = float(np.median(moved[texture])) / speed, float(np.median(turned)) / speed
             rows.append({"fov_deg": float(fov), "texture": texture, "translation": m, "rotation": r,
                          "ratio": r / m if m > 0 else math.nan, "pinhole": float(np.mean(gains))})
     return rows
@@ -105,7 +118,7 @@ def evaluate(*, model: str = "extended", fovs=DEFAULT_FOVS, textures=DEFAULT_TEX
 def format_report(rows: list[dict]) -> str:
     """The rows as a Markdown table."""
     header = ("| HFOV | texture | translation read / true | turn read / true | turn / translation "
-              "| even-spread pinhole gain |")
+              "| even-spread pinhole gain, mean over the directions |")
     lines = [header, "|---:|---|---:|---:|---:|---:|"]
     for r in rows:
         lines.append(f"| {r['fov_deg']:g}° | {r['texture']} | {r['translation']:.3f} | {r['rotation']:.3f} "
@@ -113,12 +126,9 @@ def format_report(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def _numbers(text: str) -> tuple[float, ...]:
-    try:
-        values = tuple(float(x) for x in text.split(",") if x.strip())
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated numbers") from None
-    if not values or not all(0.0 < v < 180.0 for v in values):
+def _fields_of_view(text: str) -> tuple[float, ...]:
+    values = number_list(text, float)
+    if not all(0.0 < v < 180.0 for v in values):
         raise argparse.ArgumentTypeError(f"{text!r}: fields of view must be between 0 and 180 deg")
     return values
 
@@ -127,7 +137,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m emdflow.tools.rotation_eval",
                                  description=__doc__.splitlines()[0])
     ap.add_argument("--model", default="extended", choices=tuple(MODELS))
-    ap.add_argument("--fovs", type=_numbers, default=DEFAULT_FOVS,
+    ap.add_argument("--fovs", type=_fields_of_view, default=DEFAULT_FOVS,
                     help="horizontal fields of view, degrees, comma-separated")
     ap.add_argument("--textures", default=",".join(DEFAULT_TEXTURES), help="comma-separated grounds")
     ap.add_argument("--speed", type=float, default=3.0, help="flow at the image centre, px/frame")
@@ -135,18 +145,17 @@ def main(argv=None) -> int:
     ap.add_argument("--size", default="320x240", help="frame size WxH")
     ap.add_argument("--backend", default="opencl", choices=("opencl", "numpy"))
     a = ap.parse_args(argv)
-    try:
-        width, height = (int(x) for x in a.size.lower().split("x"))
-    except ValueError:
-        ap.error(f"--size {a.size!r}: expected WxH, e.g. 320x240")
+    from emdflow.tools.video_io import parse_size
+
     t0 = time.time()
     try:
+        width, height = parse_size(a.size)
         rows = evaluate(model=a.model, fovs=a.fovs, textures=tuple(t for t in a.textures.split(",") if t),
                         speed=a.speed, frames=a.frames, width=width, height=height, backend=a.backend)
     except ValueError as exc:
         print(f"rotation_eval: {exc}", file=sys.stderr)
         return 2
-    print(f"{a.model} model, {width}x{height}, {a.speed:g} px/frame at the image centre, noise sigma 2, "
+    print(f"{a.model} model, {width}x{height}, {a.speed:g} px/frame at the image centre, noise sigma 2 (gray levels), "
           f"directions {', '.join(f'{d:g}' for d in DIRECTIONS_DEG)} deg ({time.time() - t0:.0f} s)")
     print(format_report(rows))
     return 0
