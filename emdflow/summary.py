@@ -833,11 +833,33 @@ def _vertex(l0: float, l1: float, l2: float) -> float:
     return max(-0.5, min(0.5, 0.5 * (l0 - l2) / den))
 
 
+def _polar(model: _LikelihoodModel, U: float, V: float) -> tuple[float, int]:
+    """A flow as the search's coordinates: (log speed, floored at the model's speed floor;
+    index of the nearest tabulated direction)."""
+    return (math.log(max(math.hypot(U, V), model.speed_floor)),
+            round(math.atan2(V, U) / _DIR_STEP) % _DIRECTIONS)
+
+
+def _fitted_curves(model: _LikelihoodModel, full: np.ndarray, summed: np.ndarray | None,
+                   opts: SummaryOptions):
+    """A frame's likelihood curves and saturated model (:func:`_row_curves`) when it gets a
+    likelihood fit — at least two active rows and ``opts.min_detections`` detections —
+    else None. ``full`` is the histogram, ``summed`` the same with its gradient classes
+    added up (:func:`_classes_summed`; None: computed here when the table needs it)."""
+    if model.classes > 1:
+        hist = full
+    else:
+        hist = _classes_summed(full) if summed is None else summed
+    curves, count, active, saturated = _row_curves(model, hist, opts.row_exponent)
+    if active < 2 or count < opts.min_detections:
+        return None
+    return curves, saturated
+
+
 def _likelihood_fit(model: _LikelihoodModel, curves, U0: float, V0: float):
     """Coarse-to-fine polar search; returns (U, V, σ of log-speed, σ of direction, the
     log-likelihood at the final level's best grid point)."""
-    log_s = math.log(max(math.hypot(U0, V0), model.speed_floor))
-    d = int(round(math.atan2(V0, U0) / _DIR_STEP)) % _DIRECTIONS
+    log_s, d = _polar(model, U0, V0)
     sig_s = sig_a = math.inf
     last = len(model.levels) - 1
     for level_index, level in enumerate(model.levels):
@@ -884,16 +906,14 @@ def _log_likelihood_at(field: FlowField, flows, options: SummaryOptions | None =
     model = _model_of(field, opts) if field.ready else None
     if model is None:
         return None
-    full = field.histogram
-    curves, count, active, _ = _row_curves(model, full if model.classes > 1 else _classes_summed(full),
-                                           opts.row_exponent)
-    if active < 2 or count < opts.min_detections:  # summarize() keeps the IoC fit there
+    fitted = _fitted_curves(model, field.histogram, None, opts)
+    if fitted is None:  # summarize() keeps the IoC fit there
         return None
+    curves = fitted[0]
     point = (np.zeros(1), np.zeros(1), 1, np.ones(1, np.float32), np.array([_PAD]))
     values = []
     for U, V in flows:
-        d = round(math.atan2(V, U) / _DIR_STEP) % _DIRECTIONS
-        log_s = math.log(max(math.hypot(U, V), model.speed_floor))
+        log_s, d = _polar(model, U, V)
         values.append(float(_loglik_grid(model, curves, log_s, d, point)[0, 0]))
     return values
 
@@ -962,12 +982,10 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
     q_evidence = min(1.0, n / opts.full_detections)
     q_geometry = min(1.0, 2.0 * geometry)
 
-    count = active = 0
     deviance = 0.0
-    if model is not None:
-        curves, count, active, saturated = _row_curves(model, full if model.classes > 1 else hist,
-                                                       opts.row_exponent)
-    if active >= 2 and count >= opts.min_detections:
+    fitted = _fitted_curves(model, full, hist, opts) if model is not None else None
+    if fitted is not None:
+        curves, saturated = fitted
         U1, V1, sig_s, sig_a, loglik = _likelihood_fit(model, curves, U, V)
         speed = math.hypot(U1, V1)
         disagreement = math.hypot(U1 - U, V1 - V) / max(speed, model.speed_floor)

@@ -153,7 +153,48 @@ def _finite_pair(name: str, pair, unit: str) -> tuple[float, float]:
     return _finite(f"{name}[0]", x), _finite(f"{name}[1]", y)
 
 
-class CameraFlight:
+def _check_raster(width: int, height: int, supersample: int) -> None:
+    """ValueError for a frame too small to render or a supersampling factor below 1."""
+    if width < MIN_SIDE or height < MIN_SIDE:
+        raise ValueError(f"frame size {width}x{height}: both sides must be at least {MIN_SIDE} px")
+    if supersample < 1:
+        raise ValueError(f"supersample={supersample}: must be >= 1")
+
+
+def _sensor_frame(image: np.ndarray, noise_sigma: float, seed: int) -> np.ndarray:
+    """The 8-bit frame a sensor delivers from ``image`` (gray levels): Gaussian noise of
+    ``noise_sigma`` (generator seeded with ``seed``, so a frame renders again on its own),
+    rounded and clipped to 0..255."""
+    if noise_sigma > 0:
+        rng = np.random.default_rng(seed)
+        image = image + rng.normal(0.0, noise_sigma, image.shape).astype(np.float32)
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+class _RenderedFrames:
+    """What the renderers share: their raster, ground and noise, and frame sequences of
+    their ``render(t)``."""
+
+    def _init_raster(self, texture: str, width: int, height: int, supersample: int,
+                     noise_sigma: float, seed: int) -> None:
+        self.noise_sigma = _finite("noise_sigma", noise_sigma)
+        self.texture_name = str(texture)
+        self.texture = load_texture(texture)
+        self.width, self.height = int(width), int(height)
+        self.supersample = int(supersample)
+        self.seed = int(seed)
+
+    def frames(self, count: int, start: int = 0):
+        """Yield ``count`` consecutive frames starting at index ``start``."""
+        for t in range(start, start + count):
+            yield self.render(t)
+
+    def render_many(self, count: int, start: int = 0) -> np.ndarray:
+        """Render ``count`` frames as an array of shape (count, height, width)."""
+        return np.stack(list(self.frames(count, start)))
+
+
+class CameraFlight(_RenderedFrames):
     """A camera flight over a textured ground plane with known image motion.
 
     Parameters
@@ -215,13 +256,10 @@ class CameraFlight:
         seed: int = 0,
         start: tuple[float, float] | None = None,
     ):
-        if width < MIN_SIDE or height < MIN_SIDE:
-            raise ValueError(f"frame size {width}x{height}: both sides must be at least {MIN_SIDE} px")
-        if supersample < 1:
-            raise ValueError(f"supersample={supersample}: must be >= 1")
+        _check_raster(width, height, supersample)
         # NaN or infinity would reach cv2.warpAffine, which then never returns
         self.flow = _finite_pair("flow", flow, "px/frame")
-        self.noise_sigma = _finite("noise_sigma", noise_sigma)
+        self._init_raster(texture, width, height, supersample, noise_sigma, seed)
         self.contrast = _finite("contrast", contrast)
         self.exposure_drift = _finite("exposure_drift", exposure_drift)
         self.expansion_rate = _finite("expansion_rate", expansion_rate)
@@ -230,13 +268,7 @@ class CameraFlight:
         self.ground_scale = _finite("ground_scale", ground_scale)
         if self.ground_scale <= 0.0:
             raise ValueError(f"ground_scale={ground_scale!r}: must be > 0 (ground px per image px)")
-        self.texture_name = str(texture)
-        self.texture = load_texture(texture)
-        self.width = int(width)
-        self.height = int(height)
         self.drift_frames = max(1, int(drift_frames))
-        self.supersample = int(supersample)
-        self.seed = int(seed)
         th, tw = self.texture.shape
         self.start = _finite_pair("start", start, "texture px") if start is not None else (tw / 2.0, th / 2.0)
         # BORDER_REFLECT_101 repeats the ground every 2 (n - 1) px
@@ -310,23 +342,10 @@ class CameraFlight:
         image = cv2.resize(fine, (self.width, self.height), interpolation=cv2.INTER_AREA)
         gain = 1.0 + self.exposure_drift * min(1.0, t / self.drift_frames)
         image = (image - 128.0) * self.contrast + 128.0
-        image = image * gain
-        if self.noise_sigma > 0:
-            rng = np.random.default_rng(self.seed + t)
-            image = image + rng.normal(0.0, self.noise_sigma, image.shape).astype(np.float32)
-        return np.clip(np.rint(image), 0, 255).astype(np.uint8)
-
-    def frames(self, count: int, start: int = 0):
-        """Yield ``count`` consecutive frames starting at index ``start``."""
-        for t in range(start, start + count):
-            yield self.render(t)
-
-    def render_many(self, count: int, start: int = 0) -> np.ndarray:
-        """Render ``count`` frames as an array of shape (count, height, width)."""
-        return np.stack(list(self.frames(count, start)))
+        return _sensor_frame(image * gain, self.noise_sigma, self.seed + t)
 
 
-class RotatingCamera:
+class RotatingCamera(_RenderedFrames):
     """A pinhole camera turning in place over a textured scene, with exact ground truth.
 
     The camera (focal length ``focal_length_px``, no lens distortion) turns about a fixed
@@ -363,10 +382,7 @@ class RotatingCamera:
                  focal_length_px: float = 320.0, flow: tuple[float, float] = (3.0, 0.0),
                  noise_sigma: float = 2.0, supersample: int = 4, seed: int = 0,
                  reference_frame: int = 0):
-        if width < MIN_SIDE or height < MIN_SIDE:
-            raise ValueError(f"frame size {width}x{height}: both sides must be at least {MIN_SIDE} px")
-        if supersample < 1:
-            raise ValueError(f"supersample={supersample}: must be >= 1")
+        _check_raster(width, height, supersample)
         self.focal_length_px = _finite("focal_length_px", focal_length_px)
         if self.focal_length_px <= 0.0:
             raise ValueError(f"focal_length_px={focal_length_px!r}: must be > 0")
@@ -376,12 +392,7 @@ class RotatingCamera:
         if self.angle_per_frame >= math.radians(45.0):
             raise ValueError(f"flow={flow}: turns the camera by 45 deg or more per frame at "
                              f"focal_length_px={focal_length_px:g}")
-        self.noise_sigma = _finite("noise_sigma", noise_sigma)
-        self.texture_name = str(texture)
-        self.texture = load_texture(texture)
-        self.width, self.height = int(width), int(height)
-        self.supersample = int(supersample)
-        self.seed = int(seed)
+        self._init_raster(texture, width, height, supersample, noise_sigma, seed)
         self.reference_frame = int(reference_frame)
         # the centre's ray after one frame must point at the ray that showed the ground
         # now at the centre, i.e. towards (-u, -v, f): axis = z x (-u, -v, f)
@@ -389,6 +400,18 @@ class RotatingCamera:
         axis = np.array([v, -u, 0.0])
         norm = float(np.linalg.norm(axis))
         self._axis = axis / norm if norm > 0 else np.array([0.0, 1.0, 0.0])
+        # the parts of the homography that do not turn: supersampled output pixel -> image
+        # coordinates about the centre -> ray; turned ray -> the reference view's image ->
+        # texture pixel (the texture's centre at the centre)
+        s, f = self.supersample, self.focal_length_px
+        th, tw = self.texture.shape
+        to_image = np.array([[1.0 / s, 0.0, 0.5 / s - self.width / 2.0],
+                             [0.0, 1.0 / s, 0.5 / s - self.height / 2.0], [0.0, 0.0, 1.0]])
+        to_texture = np.array([[1.0, 0.0, tw / 2.0 - 0.5], [0.0, 1.0, th / 2.0 - 0.5], [0.0, 0.0, 1.0]])
+        self._pixel_to_ray = np.diag([1.0 / f, 1.0 / f, 1.0]) @ to_image
+        self._ray_to_texture = to_texture @ np.diag([f, f, 1.0])
+        self._corner_rays = np.array([[x / f, y / f, 1.0] for x in (-self.width / 2.0, self.width / 2.0)
+                                      for y in (-self.height / 2.0, self.height / 2.0)])
 
     def truth(self, t: int) -> FlightTruth:
         """Ground truth of frame ``t``: the image motion **at the centre** (px/frame); away
@@ -398,33 +421,16 @@ class RotatingCamera:
 
     def render(self, t: int) -> np.ndarray:
         """Render frame ``t`` as a 2-D uint8 array of shape (height, width)."""
-        s, f = self.supersample, self.focal_length_px
-        W, H = self.width * s, self.height * s
         R, _ = cv2.Rodrigues(self._axis * (self.angle_per_frame * (int(t) - self.reference_frame)))
-        corners = np.array([[x / f, y / f, 1.0] for x in (-self.width / 2.0, self.width / 2.0)
-                            for y in (-self.height / 2.0, self.height / 2.0)]) @ R.T
+        corners = self._corner_rays @ R.T
         tilt = np.degrees(np.arccos(corners[:, 2] / np.linalg.norm(corners, axis=1))).max()
         if tilt > self.MAX_RAY_TILT_DEG:
             raise ValueError(f"frame {t}: a corner looks {tilt:.0f} deg from the reference view's axis "
                              f"(more than {self.MAX_RAY_TILT_DEG:g}): the turn has gone too far from "
                              f"reference_frame={self.reference_frame}")
-        th, tw = self.texture.shape
-        # supersampled output pixel -> image coordinates about the centre -> ray -> turned
-        # ray -> frame 0's image -> texture pixel (centre of the texture at the centre)
-        to_image = np.array([[1.0 / s, 0.0, 0.5 / s - self.width / 2.0],
-                             [0.0, 1.0 / s, 0.5 / s - self.height / 2.0], [0.0, 0.0, 1.0]])
-        K, K_inv = np.diag([f, f, 1.0]), np.diag([1.0 / f, 1.0 / f, 1.0])
-        to_texture = np.array([[1.0, 0.0, tw / 2.0 - 0.5], [0.0, 1.0, th / 2.0 - 0.5], [0.0, 0.0, 1.0]])
-        M = to_texture @ K @ R @ K_inv @ to_image
-        fine = cv2.warpPerspective(self.texture, M, (W, H), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        M = self._ray_to_texture @ R @ self._pixel_to_ray
+        size = (self.width * self.supersample, self.height * self.supersample)
+        fine = cv2.warpPerspective(self.texture, M, size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                    borderMode=cv2.BORDER_REFLECT_101)
-        image = cv2.resize(fine, (self.width, self.height), interpolation=cv2.INTER_AREA).astype(np.float32)
-        if self.noise_sigma > 0:
-            rng = np.random.default_rng(self.seed + int(t))
-            image += rng.normal(0.0, self.noise_sigma, image.shape).astype(np.float32)
-        return np.clip(np.rint(image), 0, 255).astype(np.uint8)
-
-    def frames(self, count: int, start: int = 0):
-        """Yield ``count`` consecutive frames starting at index ``start``."""
-        for t in range(start, start + count):
-            yield self.render(t)
+        image = cv2.resize(fine, (self.width, self.height), interpolation=cv2.INTER_AREA)
+        return _sensor_frame(image, self.noise_sigma, self.seed + int(t))

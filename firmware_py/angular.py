@@ -63,6 +63,7 @@ from dataclasses import dataclass
 
 __all__ = [
     "focal_length_px_from_fov",
+    "fov_deg_from_focal_length_px",
     "turn_gain",
     "TURN_GAIN_WARNING",
     "apply_mounting",
@@ -137,6 +138,14 @@ def focal_length_px_from_fov(*, fov_deg: float, size_px: float) -> float:
     if size_px <= 0:
         raise ValueError(f"image size must be positive, got {size_px} px")
     return 0.5 * size_px / math.tan(math.radians(fov_deg) / 2.0)
+
+
+def fov_deg_from_focal_length_px(*, focal_length_px: float, size_px: float) -> float:
+    """Full field of view in degrees across ``size_px`` pixels at ``focal_length_px``: the
+    inverse of :func:`focal_length_px_from_fov`."""
+    if focal_length_px <= 0 or size_px <= 0:
+        raise ValueError(f"focal length and image size must be positive, got {focal_length_px} and {size_px} px")
+    return math.degrees(2.0 * math.atan(0.5 * size_px / focal_length_px))
 
 
 #: Above this even-spread gain on turns (:func:`turn_gain`, the mean of x and y) the daemon

@@ -34,7 +34,7 @@ import numpy as np
 import emdflow
 from emdflow.cues import looming_cues
 
-from .angular import TURN_GAIN_WARNING, RecentIntervals, turn_gain
+from .angular import TURN_GAIN_WARNING, RecentIntervals, fov_deg_from_focal_length_px, turn_gain
 from .clock import host_us
 from .config import Config, ConfigError
 from .links import FlowSample
@@ -539,7 +539,7 @@ class Daemon:
         engine processes (at start, and again when a reopened camera changes it)."""
         gx, gy = turn_gain(width=self.width, height=self.height, focal_length_px=self.focal_length_px)
         if (gx + gy) / 2.0 > TURN_GAIN_WARNING:
-            fov = math.degrees(2.0 * math.atan(self.width / (2.0 * self.focal_length_px)))
+            fov = fov_deg_from_focal_length_px(focal_length_px=self.focal_length_px, size_px=self.width)
             log.warning("focal length %.1f px at %dx%d (the processed image's horizontal field of view "
                         "%.0f deg): a turn of the vehicle reads about %.2fx (x) and %.2fx (y) its body rate "
                         "for a distortion-free lens, and the autopilot takes the excess for motion; a "

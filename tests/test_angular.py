@@ -4,7 +4,12 @@ import math
 
 import pytest
 
-from firmware_py.angular import FlowIntegrator, apply_mounting, focal_length_px_from_fov
+from firmware_py.angular import (
+    FlowIntegrator,
+    apply_mounting,
+    focal_length_px_from_fov,
+    fov_deg_from_focal_length_px,
+)
 
 
 def test_focal_length_from_fov():
@@ -13,6 +18,10 @@ def test_focal_length_from_fov():
     full = focal_length_px_from_fov(fov_deg=62.2, size_px=640)
     half = focal_length_px_from_fov(fov_deg=62.2, size_px=320)
     assert half == pytest.approx(full / 2)
+    # and back: the field of view of a focal length
+    assert fov_deg_from_focal_length_px(focal_length_px=half, size_px=320) == pytest.approx(62.2)
+    with pytest.raises(ValueError):
+        fov_deg_from_focal_length_px(focal_length_px=0.0, size_px=320)
     with pytest.raises(ValueError):
         focal_length_px_from_fov(fov_deg=180.0, size_px=640)
 

@@ -79,7 +79,9 @@ def test_a_recording_without_one_readable_frame_is_an_error(tmp_path):
     assert "ended before its first frame" in result.stderr or "video file" in result.stderr
 
 
-def _run_inprocess(tmp_path, factory, frames, heartbeat_rate_hz=1.0):
+def _run_inprocess(tmp_path, factory, frames, heartbeat_rate_hz=1.0, settings=()):
+    """Run the daemon in this process on 96x72 frames of ``factory``; ``settings``:
+    further ``(section, key, value)`` to set. Returns (exit code, daemon, MAVLink messages)."""
     config = Config()
     config.set("link", "heartbeat_rate_hz", heartbeat_rate_hz)
     config.set("source", "uri", "synthetic:u=2,v=1")
@@ -89,6 +91,8 @@ def _run_inprocess(tmp_path, factory, frames, heartbeat_rate_hz=1.0):
     config.set("daemon", "reopen_backoff_s", 0.2)
     config.set("daemon", "blind_after_s", 0.05)
     config.set("daemon", "threading", "single")
+    for section, key, value in settings:
+        config.set(section, key, value)
     code, daemon, data = run_daemon(config, frames=frames, source_factory=factory)
     return code, daemon, parse_mavlink(data)
 
@@ -115,8 +119,7 @@ def test_source_that_raises_is_reopened_and_link_reports_blind(tmp_path, caplog)
     assert daemon.link.stats["blind_reports"] >= 1
     # heartbeats go on while the camera is away (between the first blind report and the
     # first good flow after it)
-    seq = [(m.get_type(), getattr(m, "quality", None)) for m in msgs
-           if m.get_type() in ("OPTICAL_FLOW", "HEARTBEAT")]
+    seq = _flow_qualities(msgs)
     good = [i for i, (name, q) in enumerate(seq) if name == "OPTICAL_FLOW" and q > 0]
     blind = [i for i, (name, q) in enumerate(seq) if name == "OPTICAL_FLOW" and q == 0 and i > good[0]]
     assert blind, "no quality-0 flow message while the source was closed"
@@ -290,21 +293,15 @@ def test_a_wide_lens_is_named_at_start_up_with_its_gain_on_turns(tmp_path, caplo
     def factory():
         return make_source("synthetic:u=2,v=1", width=96, height=72, fps=100)
 
-    config = Config()
-    config.set("source", "uri", "synthetic:u=2,v=1")
-    config.set("source", "width", 96)
-    config.set("source", "height", 72)
-    config.set("engine", "backend", engine_backend())
-    config.set("daemon", "threading", "single")
-    config.set("optics", "horizontal_fov_deg", 73.0)
-    code, _, _ = run_daemon(config, frames=5, source_factory=factory)
+    def run(fov_deg):
+        return _run_inprocess(tmp_path, factory, frames=5, settings=[("optics", "horizontal_fov_deg", fov_deg)])
+
+    code, _, _ = run(73.0)
     assert code == 0
     assert "(the processed image's horizontal field of view 73 deg): a turn of the vehicle reads about " \
         "1.18x (x) and 1.10x (y)" in caplog.text
     caplog.clear()
-    config.set("optics", "horizontal_fov_deg", 45.0)  # gains 1.06 / 1.03: no warning
-    code, _, _ = run_daemon(config, frames=5, source_factory=factory)
+    code, _, _ = run(45.0)  # gains 1.06 / 1.03: no warning
     assert code == 0 and "a turn of the vehicle reads" not in caplog.text
-    config.set("optics", "horizontal_fov_deg", None)  # the synthetic source's f = width: 53 deg
-    code, daemon, _ = run_daemon(config, frames=5, source_factory=factory)
+    code, daemon, _ = run(None)  # the synthetic source's f = width: 53 deg
     assert code == 0 and daemon.focal_length_px == 96 and "a turn of the vehicle reads" not in caplog.text

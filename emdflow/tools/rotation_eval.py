@@ -42,6 +42,7 @@ import numpy as np
 
 from emdflow.params import MODELS
 from emdflow.tools import number_list
+from firmware_py.angular import focal_length_px_from_fov, turn_gain
 
 DEFAULT_FOVS = (30.0, 45.0, 60.0, 73.0, 90.0)
 DEFAULT_TEXTURES = ("gravel", "grass", "camera")
@@ -49,14 +50,15 @@ DEFAULT_TEXTURES = ("gravel", "grass", "camera")
 DIRECTIONS_DEG = (0.0, 90.0, 45.0, 135.0)
 
 
-def pinhole_gain(fov_deg: float, width: int, height: int, direction_deg: float) -> float:
-    """Mean gain of a turn's flow along its direction θ over a pinhole image whose
-    horizontal field of view is ``fov_deg``, for detections spread evenly over the frame:
-    ``1 + (cos²θ (W/2)² + sin²θ (H/2)²) / (3 f²)``, i.e. ``1 + cos²θ (g_x − 1) + sin²θ
-    (g_y − 1)`` with ``firmware_py.angular.turn_gain``'s per-axis gains."""
-    f = width / 2.0 / math.tan(math.radians(fov_deg) / 2.0)
-    c, s = math.cos(math.radians(direction_deg)), math.sin(math.radians(direction_deg))
-    return 1.0 + (c * c * (width / 2.0) ** 2 + s * s * (height / 2.0) ** 2) / (3.0 * f * f)
+def even_spread_gain(fov_deg: float, width: int, height: int) -> float:
+    """The even-spread pinhole gain of a turn (:func:`firmware_py.angular.turn_gain`: ``g_x``,
+    ``g_y``) along a flow direction θ is ``1 + cos²θ (g_x − 1) + sin²θ (g_y − 1)``; its mean
+    over :data:`DIRECTIONS_DEG`, for a frame of ``width`` × ``height`` px whose horizontal
+    field of view is ``fov_deg``."""
+    gx, gy = turn_gain(width=width, height=height,
+                       focal_length_px=focal_length_px_from_fov(fov_deg=fov_deg, size_px=width))
+    cos2 = [math.cos(math.radians(d)) ** 2 for d in DIRECTIONS_DEG]
+    return 1.0 + float(np.mean([c * (gx - 1.0) + (1.0 - c) * (gy - 1.0) for c in cos2]))
 
 
 def _read_speeds(frames, estimator, skip: int) -> list[float]:
@@ -66,8 +68,9 @@ def _read_speeds(frames, estimator, skip: int) -> list[float]:
     estimator.reset()
     speeds = []
     for t, frame in enumerate(frames):
-        s = summarize(estimator.update(frame))
+        field = estimator.update(frame)
         if t >= skip:
+            s = summarize(field)
             speeds.append(s.speed if s.quality > 0 else 0.0)
     return speeds
 
@@ -90,28 +93,27 @@ def evaluate(*, model: str = "extended", fovs=DEFAULT_FOVS, textures=DEFAULT_TEX
         raise ValueError(f"frames={frames!r}: must be at least 1")
     estimator = emdflow.FlowEstimator(width, height, backend=backend, **MODELS[model])
     skip = estimator.params.history_frames + 1
-    def flights(texture):  # (flow, keywords) per direction
-        for i, direction in enumerate(DIRECTIONS_DEG):
-            flow = (speed * math.cos(math.radians(direction)), speed * math.sin(math.radians(direction)))
-            yield direction, {"width": width, "height": height, "flow": flow, "noise_sigma": noise,
-                              "supersample": supersample, "seed": 1000 * i + 7}
-
+    flights = []  # (keywords of the flight) per direction, the same for every ground and lens
+    for i, direction in enumerate(DIRECTIONS_DEG):
+        flow = (speed * math.cos(math.radians(direction)), speed * math.sin(math.radians(direction)))
+        flights.append({"width": width, "height": height, "flow": flow, "noise_sigma": noise,
+                        "supersample": supersample, "seed": 1000 * i + 7})
     # translations read the same at every field of view: flown once per texture
-    moved = {texture: [speed_read for _, common in flights(texture) for speed_read in
+    moved = {texture: [read for common in flights for read in
                        _read_speeds(CameraFlight(texture, **common).frames(skip + frames), estimator, skip)]
              for texture in textures}
     rows = []
     for fov in fovs:
-        f = width / 2.0 / math.tan(math.radians(float(fov)) / 2.0)
+        f = focal_length_px_from_fov(fov_deg=float(fov), size_px=width)
+        pinhole = even_spread_gain(float(fov), width, height)
         for texture in textures:
-            turned, gains = [], []
-            for direction, common in flights(texture):
+            turned = []
+            for common in flights:
                 camera = RotatingCamera(texture, focal_length_px=f, reference_frame=skip + frames // 2, **common)
                 turned += _read_speeds(camera.frames(skip + frames), estimator, skip)
-                gains.append(pinhole_gain(fov, width, height, direction))
             m, r = float(np.median(moved[texture])) / speed, float(np.median(turned)) / speed
             rows.append({"fov_deg": float(fov), "texture": texture, "translation": m, "rotation": r,
-                         "ratio": r / m if m > 0 else math.nan, "pinhole": float(np.mean(gains))})
+                         "ratio": r / m if m > 0 else math.nan, "pinhole": pinhole})
     return rows
 
 
