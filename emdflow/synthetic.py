@@ -40,8 +40,9 @@ _MAX_VIEW_TEXTURES = 256
 
 #: Names of bundled photographs usable as ground textures (scikit-image's ``data`` module).
 #: Besides these (and image files), ``"immunohistochemistry"`` (a stained tissue section:
-#: a fine, irregular texture) and synthetic ``"fractal-<beta>-<seed>[-<sigma>]"`` textures
-#: (:func:`fractal_texture`) are known.
+#: a fine, irregular texture), synthetic ``"fractal-<beta>-<seed>[-<sigma>]"`` textures
+#: (:func:`fractal_texture`) and the pair ``"lines-<seed>"`` / ``"cells-<seed>"``
+#: (:func:`grid_texture`: thin lines, or step edges, on one layout) are known.
 TEXTURES = ("gravel", "grass", "brick", "camera", "moon", "coffee", "astronaut", "rocket")
 _EXTRA_PHOTOGRAPHS = ("immunohistochemistry",)
 
@@ -66,6 +67,38 @@ def fractal_texture(beta: float, seed: int, size: int = 1024, sigma: float = 40.
     return np.clip(image, 0, 255).astype(np.uint8)
 
 
+def grid_texture(kind: str, seed: int, size: int = 1024, line_width: int = 4) -> np.ndarray:
+    """A rectangular grid ground, as thin lines or as step edges on the same layout (uint8).
+
+    Columns are 15–50 px apart and rows 40–120 px (drawn from ``seed``), like a brick or
+    tiled floor seen from above. ``kind="lines"`` draws the grid as ``line_width`` px bright
+    lines (+60 gray levels on 100, like mortar joints); ``kind="cells"`` fills the same grid
+    cells with uniform gray levels drawn from 70–160, so every line becomes a step edge.
+    Both carry the same fine texture (σ = 3 gray levels). The pair isolates what thin lines
+    do to the detector: on an axis flight a line fires the scale of its speed and nothing
+    above, where an edge also fires the next larger scales (README, "Frame size")."""
+    if kind not in ("lines", "cells"):
+        raise ValueError(f"grid texture kind {kind!r}: expected 'lines' or 'cells'")
+    rng = np.random.default_rng(int(seed))
+    # the layout and the fine texture come first from the seed: both kinds share them
+    columns = np.cumsum(rng.integers(15, 51, size // 15 + 1))
+    rows = np.cumsum(rng.integers(40, 121, size // 40 + 1))
+    columns, rows = columns[columns < size], rows[rows < size]
+    image = rng.normal(0.0, 3.0, (size, size))
+    if kind == "lines":
+        image += 100.0
+        for x in columns:
+            image[:, x:x + line_width] += 60.0
+        for y in rows:
+            image[y:y + line_width, :] += 60.0
+    else:
+        levels = rng.uniform(70.0, 160.0, (len(rows) + 1, len(columns) + 1))
+        cell_of_x = np.searchsorted(columns, np.arange(size), side="right")
+        cell_of_y = np.searchsorted(rows, np.arange(size), side="right")
+        image += levels[cell_of_y[:, None], cell_of_x[None, :]]
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
 @lru_cache(maxsize=16)
 def _load_texture_cached(name: str) -> np.ndarray:
     if name in TEXTURES or name in _EXTRA_PHOTOGRAPHS:
@@ -81,6 +114,11 @@ def _load_texture_cached(name: str) -> np.ndarray:
         except ValueError:
             raise ValueError(f"texture {name!r}: expected fractal-<beta>-<seed>[-<sigma>], "
                              "e.g. fractal-1.0-1 or fractal-0.8-3-60") from None
+    elif name.startswith(("lines-", "cells-")) and not Path(name).is_file():
+        kind, _, seed = name.partition("-")
+        if not seed.isdigit():
+            raise ValueError(f"texture {name!r}: expected {kind}-<seed>, e.g. {kind}-1")
+        image = grid_texture(kind, int(seed))
     else:
         path = Path(name)
         if not path.is_file():
