@@ -406,10 +406,9 @@ def main(argv=None) -> int:
     try:  # no usable OpenCL device (or a device choice that names none): one line, exit 1
         environment = _environment(*sizes[0], kwargs)
     except (RuntimeError, ValueError) as exc:
-        from .opencl_backend import error_summary
+        from .opencl_backend import exception_summary
 
-        print(f"emdflow bench: error: OpenCL engine: {error_summary(str(exc)) or type(exc).__name__}",
-              file=sys.stderr)
+        print(f"emdflow bench: error: OpenCL engine: {exception_summary(exc)}", file=sys.stderr)
         return 1
     print(f"# emdflow bench — {environment}; model: {args.model}"
           + (f", delays {kwargs['delays']}" if args.delays is not None else "")

@@ -356,6 +356,12 @@ def error_summary(text: str) -> str:
     return line
 
 
+def exception_summary(exc: BaseException) -> str:
+    """One line for an exception from the OpenCL engine: :func:`error_summary` of its
+    message, or the exception's type name when it has none."""
+    return error_summary(str(exc)) or type(exc).__name__
+
+
 def first_error_line(text: str) -> str:
     """The line of an OpenCL failure's message that says why: the compiler's first
     ``error:`` line, else the first line ("" for none)."""

@@ -15,6 +15,8 @@ from pathlib import Path
 
 from emdflow.params import MODELS
 
+from .links.base import AUTOPILOT_PROTOCOLS
+
 __all__ = ["Config", "SourceConfig", "OpticsConfig", "EngineConfig", "LinkConfigSection",
            "DaemonConfig", "ConfigError", "load_config", "SECTIONS"]
 
@@ -121,11 +123,6 @@ class DaemonConfig:
     blind_after_s: float = _opt(0.25, minimum=0.02, maximum=10.0, doc="no frame for this long = blind, s")
 
 
-#: The wire protocols over which each autopilot setting's flow message set can go
-#: (docs/spec/autopilot-links.md): ArduPilot also reads MSP (FLOW_TYPE = 7), PX4 only MAVLink,
-#: INAV only MSP; "both" is the two MAVLink messages.
-_AUTOPILOT_PROTOCOLS = {"ardupilot": ("mavlink", "msp"), "px4": ("mavlink",), "inav": ("msp",),
-                        "both": ("mavlink",)}
 _AUTOPILOT_NAMES = {"ardupilot": "ArduPilot", "px4": "PX4", "inav": "INAV",
                     "both": "'both' (OPTICAL_FLOW and OPTICAL_FLOW_RAD)"}
 
@@ -174,7 +171,7 @@ class Config:
         if self.daemon.reopen_backoff_max_s < self.daemon.reopen_backoff_s:
             raise ConfigError(f"{where}: [daemon] reopen_backoff_max_s must be >= reopen_backoff_s")
         autopilot, protocol = self.link.autopilot, self.link.protocol
-        speaks = _AUTOPILOT_PROTOCOLS.get(autopilot, ())
+        speaks = AUTOPILOT_PROTOCOLS.get(autopilot, ())
         if protocol is not None and speaks and protocol not in speaks:
             raise ConfigError(
                 f"{where}: [link] autopilot = {autopilot!r} with protocol = {protocol!r} (--autopilot / "

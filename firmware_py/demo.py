@@ -194,10 +194,10 @@ def _fall_back_without_opencl(config, out) -> bool:
               "(slow: a capture thread passes every k-th frame, evenly spaced, as for a camera; "
               "outside the demo emdflowd stops with this error, unless [engine] backend = "
               "\"numpy\" is set).", file=out, flush=True)
-        from emdflow.opencl_backend import error_summary
+        from emdflow.opencl_backend import exception_summary
 
         log.error("OpenCL is not usable here (%s): the demo runs on the numpy reference",
-                  error_summary(str(exc)) or type(exc).__name__)
+                  exception_summary(exc))
         # (the daemon then reads the paced flight with a capture thread: see Daemon.run)
         config.set("engine", "backend", "numpy")
         return True

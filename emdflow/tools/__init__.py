@@ -208,10 +208,9 @@ def make_estimator(args, width: int, height: int):
     except ValueError as e:
         raise ToolError(f"engine options: {e}", 2) from None
     except (RuntimeError, ImportError) as e:
-        from emdflow.opencl_backend import error_summary
+        from emdflow.opencl_backend import exception_summary
 
-        msg = error_summary(str(e)) or type(e).__name__
-        raise ToolError(f"backend {backend}: {msg} (try --backend numpy)", 1) from None
+        raise ToolError(f"backend {backend}: {exception_summary(e)} (try --backend numpy)", 1) from None
 
 
 class _NoBar:

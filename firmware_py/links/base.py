@@ -44,12 +44,17 @@ from .message_log import MessageLog
 from .serial_port import OutgoingMessage, SerialTransport
 
 __all__ = ["FlowSample", "LinkConfig", "FlowLink", "choose_message_rate", "AUTOPILOTS", "PROTOCOLS",
-           "BLIND_RATE_HZ", "resolve_protocol"]
+           "AUTOPILOT_PROTOCOLS", "BLIND_RATE_HZ", "resolve_protocol"]
 
 log = logging.getLogger(__name__)
 
 AUTOPILOTS = ("ardupilot", "px4", "inav", "both")
 PROTOCOLS = ("mavlink", "msp")
+#: The wire protocols over which each autopilot setting's flow message set can go, the
+#: default first (docs/spec/autopilot-links.md): ArduPilot also reads MSP (FLOW_TYPE = 7),
+#: PX4 only MAVLink, INAV only MSP; "both" is the two MAVLink messages.
+AUTOPILOT_PROTOCOLS = {"ardupilot": ("mavlink", "msp"), "px4": ("mavlink",), "inav": ("msp",),
+                       "both": ("mavlink",)}
 
 #: Quality-0 keep-alive messages per second while no frames arrive.
 BLIND_RATE_HZ = 10.0
@@ -179,10 +184,11 @@ class LinkConfig:
 
 
 def resolve_protocol(config: LinkConfig) -> str:
-    """Wire protocol for a config: the explicit one, else msp for INAV, mavlink otherwise."""
+    """Wire protocol for a config: the explicit one, else the autopilot's default (msp for
+    INAV, mavlink otherwise: :data:`AUTOPILOT_PROTOCOLS`)."""
     if config.protocol is not None:
         return config.protocol
-    return "msp" if config.autopilot == "inav" else "mavlink"
+    return AUTOPILOT_PROTOCOLS[config.autopilot][0]
 
 
 def choose_message_rate(*, baud: int, bytes_per_message: int, cap_hz: float,

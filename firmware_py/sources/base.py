@@ -112,6 +112,14 @@ class FrameSource:
         """Open the device or file; raise :class:`SourceError` naming it on failure."""
         raise NotImplementedError
 
+    def _record_crop(self, delivered_w: int, delivered_h: int) -> tuple[int, int, int, int]:
+        """Set :attr:`crop_fraction` for a delivered ``delivered_w × delivered_h`` image
+        and return its centre crop to the processing aspect ratio, ``(x0, y0, crop_width,
+        crop_height)`` (:func:`centre_crop`); each source says in its own words what it cuts."""
+        crop = centre_crop(delivered_w, delivered_h, self.width, self.height)
+        self.crop_fraction = (crop[2] / delivered_w, crop[3] / delivered_h)
+        return crop
+
     def read(self) -> Frame | None:
         """Return the next frame (blocking until it is there), or None at end of stream."""
         raise NotImplementedError

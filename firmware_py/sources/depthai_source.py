@@ -24,7 +24,7 @@ import math
 import numpy as np
 
 from ..clock import host_us
-from .base import Frame, FrameSource, SourceConfigError, SourceError, centre_crop
+from .base import Frame, FrameSource, SourceConfigError, SourceError
 from .video import probe_video
 
 __all__ = ["DepthAISource", "MONO_SOCKETS"]
@@ -93,18 +93,18 @@ class DepthAISource(FrameSource):
                 file_fps = float(fps)
             self.width, self.height, self.fps = int(width or native_w), int(height or native_h), float(file_fps)
             self.default_focal_length_px = float(self.width)
-            self.crop_fraction = self._crop_of(native_w, native_h, "file")
+            self._note_crop(native_w, native_h, "file")
         self._pipeline = None
         self._queue = None
         self._first = None  # the live camera's first frame, read by open()
         self._index = 0
         self._period_us = 1e6 / self.fps
 
-    def _crop_of(self, delivered_w: int, delivered_h: int, what: str) -> tuple[float, float]:
-        """Shares of a delivered image's width and height that the centre crop to the
-        processing aspect ratio keeps (logged when it cuts)."""
-        _, _, crop_w, crop_h = centre_crop(delivered_w, delivered_h, self.width, self.height)
-        crop = (crop_w / delivered_w, crop_h / delivered_h)
+    def _note_crop(self, delivered_w: int, delivered_h: int, what: str) -> None:
+        """Record the shares of a delivered image's width and height that the centre crop
+        to the processing aspect ratio keeps (:attr:`crop_fraction`; logged when it cuts)."""
+        _, _, crop_w, crop_h = self._record_crop(delivered_w, delivered_h)
+        crop = self.crop_fraction
         if crop != (1.0, 1.0):
             # a sensor of another aspect ratio is the normal case for a camera; a file is not
             level = logging.INFO if what == "sensor" else logging.WARNING
@@ -112,7 +112,6 @@ class DepthAISource(FrameSource):
                     "its centre %dx%d (%.1f %% of its width) is used; a field of view in [optics] is "
                     "that of the whole %dx%d image", self.uri, what, delivered_w, delivered_h,
                     self.width, self.height, crop_w, crop_h, 100.0 * crop[0], delivered_w, delivered_h)
-        return crop
 
     # -- pipeline construction: the only part that differs between camera and replay --
     def _build_camera(self, dai, pipeline):
@@ -178,22 +177,23 @@ class DepthAISource(FrameSource):
             except SourceError:
                 self.close()
                 raise
-            self.crop_fraction = self._delivered_crop(self._first)
+            self._note_delivered_crop(self._first)
 
-    def _delivered_crop(self, msg) -> tuple[float, float]:
-        """The centre crop the camera applied, from a frame's source (sensor image) size;
-        (1, 1) when the frame does not say."""
+    def _note_delivered_crop(self, msg) -> None:
+        """Record the centre crop the camera applied, from a frame's source (sensor image)
+        size; (1, 1) when the frame does not say."""
+        self.crop_fraction = (1.0, 1.0)
         try:
             source_w, source_h = int(msg.getSourceWidth()), int(msg.getSourceHeight())
         except Exception as exc:  # noqa: BLE001 - metadata only: the frames are still good
             log.debug("%s: no source size on the frames (%s)", self.uri, exc)
-            return (1.0, 1.0)
+            return
         if source_w <= 0 or source_h <= 0:
             log.warning("%s: the frames do not say their sensor image size: the crop is unknown, and a "
                         "field of view in [optics] is taken over the %dx%d frames themselves", self.uri,
                         self.width, self.height)
-            return (1.0, 1.0)
-        return self._crop_of(source_w, source_h, "sensor")
+            return
+        self._note_crop(source_w, source_h, "sensor")
 
     def read(self) -> Frame | None:
         if self._queue is None:

@@ -24,8 +24,7 @@ import cv2
 import numpy as np
 
 from ..clock import host_us
-from .base import (_BAD_FRAME_LOG_S, Frame, FrameError, FrameSource, SourceConfigError, SourceError, centre_crop,
-                   fit_to)
+from .base import _BAD_FRAME_LOG_S, Frame, FrameError, FrameSource, SourceConfigError, SourceError, fit_to
 
 __all__ = ["V4L2Source", "raw_to_gray", "PIXEL_FORMATS"]
 
@@ -229,8 +228,7 @@ class V4L2Source(FrameSource):
     def _note_geometry(self, got_w: int, got_h: int) -> None:
         """Record how a delivered ``got_w × got_h`` image becomes a processed frame, and say
         so when it is not the asked size (a WARNING when the aspect ratio differs)."""
-        x0, y0, crop_w, crop_h = centre_crop(got_w, got_h, self.width, self.height)
-        self.crop_fraction = (crop_w / got_w, crop_h / got_h)
+        x0, y0, crop_w, crop_h = self._record_crop(got_w, got_h)
         if (got_w, got_h) == (self.width, self.height):
             return
         scale = self.width / crop_w

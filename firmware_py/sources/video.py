@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from ..clock import host_us
-from .base import Frame, FrameSource, Pacer, SourceError, centre_crop, fit_to
+from .base import Frame, FrameSource, Pacer, SourceError, fit_to
 
 __all__ = ["VideoFileSource", "probe_video", "is_gray_stream"]
 
@@ -137,8 +137,7 @@ class VideoFileSource(FrameSource):
         """Record (and warn about) a centre crop when [source] width × height has another
         aspect ratio than the file: x and y must be scaled alike for the link (the file's
         size is known before it is opened; the daemon makes a new source to reopen)."""
-        _, _, crop_w, crop_h = centre_crop(native_w, native_h, self.width, self.height)
-        self.crop_fraction = (crop_w / native_w, crop_h / native_h)
+        _, _, crop_w, crop_h = self._record_crop(native_w, native_h)
         if (crop_w, crop_h) != (native_w, native_h):
             log.warning("video file %r is %dx%d, [source] asks for %dx%d (another aspect ratio): its centre "
                         "%dx%d is used and scaled by %.3f on both axes; the focal length refers to the "
