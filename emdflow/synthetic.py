@@ -76,7 +76,7 @@ def grid_texture(kind: str, seed: int, size: int = 1024, line_width: int = 4) ->
     cells with uniform gray levels drawn from 70–160, so every line becomes a step edge.
     Both carry the same fine texture (σ = 3 gray levels). The pair isolates what thin lines
     do to the detector: on an axis flight a line fires the scale of its speed and nothing
-    above, where an edge also fires the next larger scales (README, "Frame size")."""
+    above, where an edge also fires the next larger scales (README, "Thin lines read slow")."""
     if kind not in ("lines", "cells"):
         raise ValueError(f"grid texture kind {kind!r}: expected 'lines' or 'cells'")
     rng = np.random.default_rng(int(seed))

@@ -342,7 +342,7 @@ def test_thin_lines_fire_only_the_scale_of_their_speed(flow):
     displacement plus the receptor), a line only the scale of its speed (a receptor larger
     than the displacement sees the line at both times, and the change cancels). The
     summary's table, measured over edges, reads a pure code-k mixture as slower than k
-    (README, "Frame size")."""
+    (README, "Thin lines read slow")."""
     speed = abs(flow[0] or flow[1])
     share_at_speed = {}
     for texture in ("lines-1", "cells-1"):
