@@ -94,8 +94,7 @@ def test_unit_passes_systemd_analyze_verify(tmp_path):
 
 def test_install_script_dry_run_changes_nothing(tmp_path):
     before = os.path.exists("/etc/emdflow/emdflow.toml"), os.path.exists("/etc/systemd/system/emdflowd.service")
-    result = subprocess.run(["bash", str(DEPLOY / "install.sh"), "--dry-run", "--prefix", str(tmp_path / "opt"),
-                             "--opencl", "apt", "--depthai"], capture_output=True, text=True, timeout=60)
+    result = _dry_run("--prefix", tmp_path / "opt", "--opencl", "apt", "--depthai")
     assert result.returncode == 0, result.stderr
     out = result.stdout
     for expected in ("apt-get install -y --no-install-recommends", "pocl-opencl-icd", "binutils",
@@ -109,11 +108,9 @@ def test_install_script_dry_run_changes_nothing(tmp_path):
 
 
 def test_install_script_rejects_bad_options():
-    result = subprocess.run(["bash", str(DEPLOY / "install.sh"), "--dry-run", "--opencl", "cuda"],
-                            capture_output=True, text=True, timeout=60)
+    result = _dry_run("--opencl", "cuda")
     assert result.returncode == 2 and "--opencl must be pip, apt or vendor" in result.stderr
-    default = subprocess.run(["bash", str(DEPLOY / "install.sh"), "--dry-run"], capture_output=True, text=True,
-                             timeout=60)
+    default = _dry_run()
     assert default.returncode == 0 and f"{REPO}[pocl]" in default.stdout
     # pip's PoCL is checked on this processor right after the install (Debian's is added
     # where it cannot build the kernels); with Debian's or a vendor's PoCL there is no check
@@ -131,9 +128,10 @@ def test_udev_rules_are_well_formed():
             assert re.fullmatch(r'[A-Z]+(\{[a-zA-Z_]+\})?(==|\+=|=)"[^"]*"', item), item
 
 
-def _dry_run(*args):
+def _dry_run(*args, env=None):
+    """``deploy/install.sh --dry-run`` with ``args``: prints what it would do, changes nothing."""
     return subprocess.run(["bash", str(DEPLOY / "install.sh"), "--dry-run", *map(str, args)],
-                          capture_output=True, text=True, timeout=60)
+                          capture_output=True, text=True, timeout=60, env=env)
 
 
 def _unit_environment():
@@ -212,13 +210,11 @@ def test_install_adds_the_service_user_to_render_where_that_group_exists(tmp_pat
     (shim / "getent").write_text('#!/bin/sh\n[ "$1 $2" = "group render" ] && echo "render:x:993:" && exit 0\nexit 2\n')
     (shim / "getent").chmod(0o755)
     env = dict(os.environ, PATH=f"{shim}:{os.environ['PATH']}")
-    with_render = subprocess.run(["bash", str(DEPLOY / "install.sh"), "--dry-run"], capture_output=True, text=True,
-                                 timeout=60, env=env)
+    with_render = _dry_run(env=env)
     assert with_render.returncode == 0, with_render.stderr
     assert "--groups video,dialout,render emdflow" in with_render.stdout
     (shim / "getent").write_text("#!/bin/sh\nexit 2\n")
-    without = subprocess.run(["bash", str(DEPLOY / "install.sh"), "--dry-run"], capture_output=True, text=True,
-                             timeout=60, env=env)
+    without = _dry_run(env=env)
     assert "--groups video,dialout emdflow" in without.stdout
 
 
