@@ -98,6 +98,19 @@ classes (they gained little there, see ``calibrate_summary.GRADIENT_CLASS_TABLES
 the summary sums the histogram's classes for it. For a channel set
 without a table the summary falls back to step 1 alone.
 
+**Line ground.** Thin lines (mortar joints, paving, tiles) fire only the scale of their
+speed where an edge also fires the larger ones, so the edge table reads them slow (brick
+at 7–13 px/frame: 0.66–0.80×). The extended model's channels have a second table,
+measured over turned grids of thin bright lines (``summary_calibration_extended_lines.npz``,
+``calibrate_summary fit --ground lines``). Each frame is fitted with both, from the same
+IoC guess, and the line table's answer is kept when its log-likelihood beats the edge
+table's by more than ``SummaryOptions.line_ground_margin`` (:attr:`FlowSummary.line_ground`
+says which). The gradient-strength classes are what make the two tell apart: a thin line
+has a strong gradient for the speed its codes say. The paper's channels have no line
+table: one fitted by the same recipe won in only a third of the frames over turned line
+grids and a fifth over step edges, and read the +0.3 rad set's directions worse (README,
+"Thin lines read slow").
+
 Measured accuracy
 -----------------
 OpenCL backend (bit-identical to numpy), 320×240, noise σ = 2, 9 speeds (1, 2, 3, 4, 5, 7,
@@ -139,17 +152,20 @@ evaluation textures × 8 directions × 6 frames = 1920 frames per set, coverage 
 every set (``evaluate --model extended --random`` etc.; see ``calibrate_summary``).
 Median relative error, median direction error:
 
-==========================================  ==============  ================
-set                                         all speeds      0.25 px/frame
-==========================================  ==============  ================
-random directions                           7.0 %, 1.80°    6.6 %, 1.88°
-multiples of 45° + 0.3 rad                  7.0 %, 1.84°    6.2 %, 1.91°
-random, contrast × 0.25                     8.2 %, 2.09°    10.5 %, 2.86°
-random, exposure drift +20 % per flight     7.3 %, 1.92°    6.9 %, 1.74°
-random, exposure drift −20 % per flight     7.2 %, 1.92°    9.2 %, 1.77°
-==========================================  ==============  ================
+==========================================  ==============  ================  ====================
+set                                         all speeds      0.25 px/frame     edge table alone
+==========================================  ==============  ================  ====================
+random directions                           6.3 %, 1.92°    6.6 %, 1.86°      7.0 %, 1.80°; 6.6 %
+multiples of 45° + 0.3 rad                  6.2 %, 1.92°    6.3 %, 1.91°      7.0 %, 1.84°; 6.2 %
+random, contrast × 0.25                     7.7 %, 2.05°    9.0 %, 2.54°      8.2 %, 2.09°; 10.5 %
+random, exposure drift +20 % per flight     6.6 %, 2.02°    7.0 %, 1.77°      7.3 %, 1.92°; 6.9 %
+random, exposure drift −20 % per flight     6.6 %, 1.95°    9.2 %, 1.82°      7.2 %, 1.92°; 9.2 %
+==========================================  ==============  ================  ====================
 
-(IoC alone: 16.9 % / 5.8°, 20.3 % / 9.5°, 19.9 % / 5.2°, 17.0 % / 5.9°, 17.6 % / 5.7°.
+(With the line-ground table, "Line ground" above; the last column is the edge table alone,
+``SummaryOptions(ground="edges")``, all speeds and 0.25 px/frame. The rest of this note
+was measured with the edge table alone. IoC alone: 16.9 % / 5.8°, 20.3 % / 9.5°,
+19.9 % / 5.2°, 17.0 % / 5.9°, 17.6 % / 5.7°.
 Measured with the compensation's threshold at 256 T + 128 (see
 :meth:`emdflow.EngineParams.compensated_threshold`), the gradient-strength classes taken
 at the brightness of the frame (the channel's exposure gain applied to the gradient of
@@ -164,14 +180,18 @@ channel's detections in too strong classes, and gravel and grass read 0.25 px/fr
 at slow speeds, and steady flights read slow motion slow. README, "The summary".) 0.5–3
 px/frame are within 4.1–5.4 % and 0.9–1.5°; 5–7 px/frame 8.0–9.3 % / 1.5–2.6°, 9–11
 px/frame 10–11 % / 3.4–3.7°, 13 px/frame 15 % / 5.3° (without the scale-15 channel, as
-for the paper's model: 29–40 % / 7–10°). Above 7 px/frame the error is brick's: its
-periodic pattern aliases (7–13 px/frame read 0.66–0.80×) while gravel, grass and camera
-read within 0.92–1.01×. Quality bands (random set): 192–255 → 5.5 % (90th percentile
+for the paper's model: 29–40 % / 7–10°). Above 7 px/frame the error is brick's: its thin
+mortar lines read 7–13 px/frame 0.66–0.80× (with the line-ground table 5–9 px/frame
+0.96–0.99×, 11–13 px/frame 0.78–0.84×) while gravel, grass and camera read within
+0.92–1.01×. Quality bands (random set): 192–255 → 5.5 % (90th percentile
 11.2 %), 128–191 → 6.8 %, 64–127 → 11.8 %, 1–63 → 21 %; rank correlation of quality with
 the error 0.41–0.45 across the five sets (without the misfit term 6.1 % (14.8 %), 6.7 %,
-15 %, 31 % and 0.32 on the random set). Cost ≈ 0.55–0.6 ms per call back to back at 640×480 (plus ~0.025 ms
-for the deviance) and 0.8–1.2 ms right after each frame's update, when the engine has
-evicted the table from the caches (``emdflow bench --stages --model extended``): the
+15 %, 31 % and 0.32 on the random set). Cost with the edge table alone ≈ 0.55–0.6 ms per
+call back to back at 640×480 (plus ~0.025 ms for the deviance) and 0.8–1.2 ms right after
+each frame's update, when the engine has evicted the table from the caches (``emdflow
+bench --stages --model extended``); the line-ground table's second fit doubles it (0.97
+against 0.53 ms back to back at 320×240 and at 640×480, ``calibrate_summary evaluate
+--data F --ground auto|edges``; 1.25 ms after each update, on another host): the
 curves of up to four classes per row, ~2 000 nonzero counts, each a 240-entry table row,
 summed by one compiled sparse product (numpy's padded batched product took ~0.85 ms back
 to back). Without the classes
@@ -225,6 +245,9 @@ CALIBRATION_FILE = Path(__file__).with_name("summary_calibration.npz")
 #: Tables of other channel sets sit next to it as ``summary_calibration_<model>.npz``
 #: (``fit --model <model> --write``); each names its channels and threshold mode.
 CALIBRATION_GLOB = "summary_calibration*.npz"
+#: Values of :attr:`SummaryOptions.ground`; a table's own ``ground`` (``"edges"`` when
+#: it names none) is one of the last two.
+GROUNDS = ("auto", "edges", "lines")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -254,6 +277,10 @@ class FlowSummary:
         histogram row's own mixture; 0 without a likelihood fit. Calibration flights show
         ~0.1–0.6 (paper table) or ~0.25–1.2 (extended), rising with speed; more means a scene
         unlike the calibration's, and lowers the quality (``SummaryOptions.misfit_weight``).
+    line_ground : bool
+        True when the answer is the line-ground table's: the frame's detections are
+        better explained by thin lines (mortar, paving joints, tiles) than by edges
+        (``SummaryOptions.ground``).
     """
 
     flow_x: float = 0.0
@@ -264,6 +291,7 @@ class FlowSummary:
     inlier_fraction: float = 0.0
     expected_error: float = math.inf
     deviance: float = 0.0
+    line_ground: bool = False
 
     @property
     def speed(self) -> float:
@@ -328,6 +356,24 @@ class SummaryOptions:
         texture whose code mixtures the table does not explain (brick's aligned, periodic
         edges: 15–16 % error at 0.5–1 px/frame where the other textures read 2–6 %)
         then gets a lower quality. 0 turns it off (the quality before this term).
+    ground : str
+        Which calibration tables the likelihood reads. ``"auto"`` (default): the edge
+        table, and where the channel set also has a *line-ground* table (measured over
+        grids of thin bright lines, ``calibrate_summary fit --ground lines``) that one
+        too; the answer is the line table's when it explains the frame's detections
+        better by more than ``line_ground_margin``. ``"edges"``: the edge table alone (the
+        summary before line ground was known). ``"lines"``: the line table alone (where
+        the channel set has one; for calibration and diagnosis). Thin lines fire only
+        their speed's scale where an edge also fires larger ones, so the edge table
+        alone reads them slow (README, "Thin lines read slow").
+    line_ground_margin : float
+        Log-likelihood (nats, over the tempered detections) by which the line table must
+        beat the edge table: the log prior odds against line ground. 5 was chosen on
+        validation flights over grounds that neither calibration nor the evaluation flew
+        over (``calibrate_summary margin``, recipe in its docstring): the rough and
+        step-edge grounds keep their accuracy at every margin from 0 to 30, the turned line
+        grids gain most from 0 to 5; above 0 the edge table, which natural ground is
+        closer to, keeps the benefit of the doubt.
     """
 
     min_textured: float = 0.01
@@ -348,6 +394,13 @@ class SummaryOptions:
     top_speed: float | None = None
     row_exponent: float = 0.5
     misfit_weight: float = 0.3
+    ground: str = "auto"
+    line_ground_margin: float = 5.0
+
+    def __post_init__(self):
+        if self.ground not in GROUNDS:
+            raise ValueError(f"SummaryOptions(ground={self.ground!r}): expected one of "
+                             f"{', '.join(map(repr, GROUNDS))}")
 
 
 _DEFAULT_OPTIONS = SummaryOptions()
@@ -581,9 +634,11 @@ def _load_calibrations() -> list:
     return _CALIBRATION["tables"]
 
 
-def _table_matches(table: dict, params: EngineParams):
-    """None when ``table`` is not for these channels, else its rank (0 = also made with
-    this threshold mode, 1 = another or unrecorded mode)."""
+def _table_matches(table: dict, params: EngineParams, ground: str = "edges"):
+    """None when ``table`` is not for these channels or not for this ``ground``, else its
+    rank (0 = also made with this threshold mode, 1 = another or unrecorded mode)."""
+    if (str(table["ground"]) if "ground" in table else "edges") != ground:
+        return None
     if "channels" in table:
         channels = tuple((int(k), int(d)) for k, d in np.asarray(table["channels"]))
         if channels != tuple(params.channels):
@@ -599,26 +654,29 @@ def _table_matches(table: dict, params: EngineParams):
     return 0 if mode == params.threshold_mode else 1
 
 
-def calibration_for(params: EngineParams):
+def calibration_for(params: EngineParams, ground: str = "edges"):
     """Path of the calibration table :func:`summarize` uses for ``params``, or None when
     none matches its channel set (the summary is then the IoC fit alone).
 
     A table must be for exactly ``params.channels``; among those, one made with the same
-    ``threshold_mode`` is preferred."""
+    ``threshold_mode`` is preferred. ``ground="lines"`` asks for the channel set's
+    line-ground table instead (None when it has none; see :attr:`SummaryOptions.ground`)."""
+    if ground not in GROUNDS[1:]:
+        raise ValueError(f"calibration_for(ground={ground!r}): expected 'edges' or 'lines'")
     best = None
     for table in _load_calibrations():
-        rank = _table_matches(table, params)
+        rank = _table_matches(table, params, ground)
         if rank is not None and (best is None or rank < best[0]):
             best = (rank, table)
     return None if best is None else best[1]["_path"]
 
 
-def _model_for(params: EngineParams, opts: SummaryOptions):
-    """The likelihood model for these channels, or None when they are not calibrated."""
-    key = (params, opts.max_axis_angle, opts.outlier_probability)
+def _model_for(params: EngineParams, opts: SummaryOptions, ground: str = "edges"):
+    """The likelihood model for these channels and ground, or None when they have no table."""
+    key = (params, opts.max_axis_angle, opts.outlier_probability, ground)
     if key in _MODEL_CACHE:
         return _MODEL_CACHE[key]
-    path = calibration_for(params)
+    path = calibration_for(params, ground)
     model = None
     if path is not None:
         table = next(t for t in _load_calibrations() if t["_path"] == path)
@@ -663,11 +721,11 @@ def _classes_summed(hist: np.ndarray) -> np.ndarray:
     return hist.reshape(hist.shape[0], hist.shape[1], -1, ORIENTATION_BINS).sum(axis=2)
 
 
-def _model_of(field: FlowField, opts: SummaryOptions):
+def _model_of(field: FlowField, opts: SummaryOptions, ground: str = "edges"):
     """The likelihood model :func:`summarize` fits ``field`` with, or None (IoC only): the
-    table of the field's channels, its scene-contrast class, with gradient-strength classes
-    when the histogram has them."""
-    models = _model_for(field.params, opts) if opts.likelihood else None
+    table of the field's channels and ``ground``, its scene-contrast class, with
+    gradient-strength classes when the histogram has them."""
+    models = _model_for(field.params, opts, ground) if opts.likelihood else None
     if models is None:
         return None
     by_class, folded = _pick_model(models, field)
@@ -896,14 +954,15 @@ def _curvature_sigma(weights: np.ndarray, prof: np.ndarray, step: float) -> floa
     return 1.0 / math.sqrt(-2.0 * a) if a < -0.5 / half ** 2 else 2.0 * half
 
 
-def _log_likelihood_at(field: FlowField, flows, options: SummaryOptions | None = None):
+def _log_likelihood_at(field: FlowField, flows, options: SummaryOptions | None = None,
+                       ground: str = "edges"):
     """The summary's log-likelihood of ``field``'s detections at each global flow ``(U, V)``
-    of ``flows`` (px/frame; each row's β read at that flow's own direction), or None when
-    the frame gets no likelihood fit. For diagnosis (``calibrate_summary evaluate``):
-    whether a wrong answer is a search that missed a better flow, or the table preferring
-    the wrong one."""
+    of ``flows`` (px/frame; each row's β read at that flow's own direction) under the table
+    of ``ground``, or None when the frame gets no likelihood fit. For diagnosis
+    (``calibrate_summary evaluate``): whether a wrong answer is a search that missed a
+    better flow, or the table preferring the wrong one."""
     opts = options or _DEFAULT_OPTIONS
-    model = _model_of(field, opts) if field.ready else None
+    model = _model_of(field, opts, ground) if field.ready else None
     if model is None:
         return None
     fitted = _fitted_curves(model, field.histogram, None, opts)
@@ -973,7 +1032,10 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
         if field.changed_fraction[c1] <= opts.static_changed:
             return FlowSummary(0.0, 0.0, int(round(255 * q_texture * 0.75)), n, True, 1.0, 0.0)
         return FlowSummary(detections=n)
-    model = _model_of(field, opts)
+    model = _model_of(field, opts, "lines") if opts.ground == "lines" else None
+    on_lines = model is not None
+    if model is None:  # the edge table (also for ground "lines" without a line table)
+        model = _model_of(field, opts)
     fit = _robust_fit(_constraints(params), used, counts, opts,
                       opts.iterations if model is None else opts.guess_iterations)
     if fit is None:
@@ -987,6 +1049,17 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
     if fitted is not None:
         curves, saturated = fitted
         U1, V1, sig_s, sig_a, loglik = _likelihood_fit(model, curves, U, V)
+        line_model = _model_of(field, opts, "lines") if opts.ground == "auto" else None
+        if line_model is not None:
+            # the same histogram under the line-ground table, from the same guess; the
+            # saturated model depends on the counts alone, so the deviances compare
+            line_fitted = _fitted_curves(line_model, full, hist, opts)
+            if line_fitted is not None:
+                line_fit = _likelihood_fit(line_model, line_fitted[0], U, V)
+                if line_fit[4] > loglik + opts.line_ground_margin:
+                    model, (curves, saturated) = line_model, line_fitted
+                    U1, V1, sig_s, sig_a, loglik = line_fit
+                    on_lines = True
         speed = math.hypot(U1, V1)
         disagreement = math.hypot(U1 - U, V1 - V) / max(speed, model.speed_floor)
         deviance = saturated.deviance(loglik)
@@ -996,6 +1069,7 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
     else:
         speed = math.hypot(U, V)
         expected = 0.1 + (1.0 - inliers)  # IoC only: a rough figure
+        on_lines = False
     top_speed = max(params.speeds) * (11.0 / 13.0) if opts.top_speed is None else opts.top_speed
     if speed > top_speed:
         expected += 0.5 * (speed / top_speed - 1.0)
@@ -1005,4 +1079,5 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
     quality = 255.0 * q_texture * q_evidence * q_geometry * q_accuracy
     # an estimate was made: quality 0 stays reserved for "no information, flow 0"
     quality = max(1, int(round(quality)))
-    return FlowSummary(float(U), float(V), quality, n, False, inliers, float(expected), deviance)
+    return FlowSummary(float(U), float(V), quality, n, False, inliers, float(expected), deviance,
+                       on_lines)

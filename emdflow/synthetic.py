@@ -41,7 +41,7 @@ _MAX_VIEW_TEXTURES = 256
 #: Names of bundled photographs usable as ground textures (scikit-image's ``data`` module).
 #: Besides these (and image files), ``"immunohistochemistry"`` (a stained tissue section:
 #: a fine, irregular texture), synthetic ``"fractal-<beta>-<seed>[-<sigma>]"`` textures
-#: (:func:`fractal_texture`) and the pair ``"lines-<seed>"`` / ``"cells-<seed>"``
+#: (:func:`fractal_texture`) and the pair ``"lines-<seed>[-<angle>]"`` / ``"cells-<seed>[-<angle>]"``
 #: (:func:`grid_texture`: thin lines, or step edges, on one layout) are known.
 TEXTURES = ("gravel", "grass", "brick", "camera", "moon", "coffee", "astronaut", "rocket")
 _EXTRA_PHOTOGRAPHS = ("immunohistochemistry",)
@@ -67,7 +67,8 @@ def fractal_texture(beta: float, seed: int, size: int = 1024, sigma: float = 40.
     return np.clip(image, 0, 255).astype(np.uint8)
 
 
-def grid_texture(kind: str, seed: int, size: int = 1024, line_width: int = 4) -> np.ndarray:
+def grid_texture(kind: str, seed: int, size: int = 1024, line_width: int = 4,
+                 angle_deg: float = 0.0) -> np.ndarray:
     """A rectangular grid ground, as thin lines or as step edges on the same layout (uint8).
 
     Columns are 15–50 px apart and rows 40–120 px (drawn from ``seed``), like a brick or
@@ -76,9 +77,29 @@ def grid_texture(kind: str, seed: int, size: int = 1024, line_width: int = 4) ->
     cells with uniform gray levels drawn from 70–160, so every line becomes a step edge.
     Both carry the same fine texture (σ = 3 gray levels). The pair isolates what thin lines
     do to the detector: on an axis flight a line fires the scale of its speed and nothing
-    above, where an edge also fires the next larger scales (README, "Thin lines read slow")."""
+    above, where an edge also fires the next larger scales (README, "Thin lines read slow").
+
+    ``angle_deg`` turns the grid (counter-clockwise in the image, degrees): the grid is
+    drawn on a square ``√2`` times larger (so its layout differs from the unturned one of
+    the same seed), turned with bilinear interpolation about its centre and cut to
+    ``size``. The summary's line-ground table is calibrated on turned grids, so that it
+    knows lines of every orientation, not only the axes'."""
     if kind not in ("lines", "cells"):
         raise ValueError(f"grid texture kind {kind!r}: expected 'lines' or 'cells'")
+    angle_deg = _finite("angle_deg", angle_deg)
+    if angle_deg % 360.0:
+        drawn = int(math.ceil(size * math.sqrt(2.0))) + 2
+        big = _grid(kind, seed, drawn, line_width).astype(np.float32)
+        turn = cv2.getRotationMatrix2D(((drawn - 1) / 2.0, (drawn - 1) / 2.0), angle_deg, 1.0)
+        turn[:, 2] -= (drawn - size) / 2.0  # the centre of the turned square to the output's
+        turned = cv2.warpAffine(big, turn, (size, size), flags=cv2.INTER_LINEAR,
+                                borderMode=cv2.BORDER_REFLECT)
+        return np.clip(np.rint(turned), 0, 255).astype(np.uint8)
+    return np.clip(np.rint(_grid(kind, seed, size, line_width)), 0, 255).astype(np.uint8)
+
+
+def _grid(kind: str, seed: int, size: int, line_width: int) -> np.ndarray:
+    """The unturned grid of :func:`grid_texture` as float64 gray levels (not yet rounded)."""
     rng = np.random.default_rng(int(seed))
     # the layout and the fine texture come first from the seed: both kinds share them
     columns = np.cumsum(rng.integers(15, 51, size // 15 + 1))
@@ -96,7 +117,7 @@ def grid_texture(kind: str, seed: int, size: int = 1024, line_width: int = 4) ->
         cell_of_x = np.searchsorted(columns, np.arange(size), side="right")
         cell_of_y = np.searchsorted(rows, np.arange(size), side="right")
         image += levels[cell_of_y[:, None], cell_of_x[None, :]]
-    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+    return image
 
 
 @lru_cache(maxsize=16)
@@ -115,10 +136,17 @@ def _load_texture_cached(name: str) -> np.ndarray:
             raise ValueError(f"texture {name!r}: expected fractal-<beta>-<seed>[-<sigma>], "
                              "e.g. fractal-1.0-1 or fractal-0.8-3-60") from None
     elif name.startswith(("lines-", "cells-")) and not Path(name).is_file():
-        kind, _, seed = name.partition("-")
-        if not seed.isdigit():
-            raise ValueError(f"texture {name!r}: expected {kind}-<seed>, e.g. {kind}-1")
-        image = grid_texture(kind, int(seed))
+        kind, *fields = name.split("-")
+        try:  # <kind>-<seed>[-<angle in degrees>]
+            if not (1 <= len(fields) <= 2 and fields[0].isdigit()):
+                raise ValueError(name)
+            angle = float(fields[1]) if len(fields) == 2 else 0.0
+            if not math.isfinite(angle):
+                raise ValueError(name)
+        except ValueError:
+            raise ValueError(f"texture {name!r}: expected {kind}-<seed>[-<angle in degrees>], "
+                             f"e.g. {kind}-1 or {kind}-1-30") from None
+        image = grid_texture(kind, int(fields[0]), angle_deg=angle)
     else:
         path = Path(name)
         if not path.is_file():

@@ -328,11 +328,43 @@ def test_grid_textures_share_their_layout():
     # a cell border changes the level in most rows (levels 70-160), noise (σ 3) does not
     jumps = np.flatnonzero(np.percentile(np.abs(np.diff(cells, axis=1)), 90, axis=0) > 15) + 1
     assert len(starts) >= 20 and np.array_equal(starts, jumps)
-    for bad in ("lines-x", "cells-", "cells-1-2"):
-        with pytest.raises(ValueError, match=r"(lines|cells)-<seed>"):
+    for bad in ("lines-x", "cells-", "cells-1-x", "lines-1-2-3", "lines-1-nan"):
+        with pytest.raises(ValueError, match=r"(lines|cells)-<seed>\[-<angle in degrees>\]"):
             load_texture(bad)
     with pytest.raises(ValueError, match="expected 'lines' or 'cells'"):
         grid_texture("dots", 1)
+
+
+def test_turned_grids_turn_the_lines():
+    """``lines-<seed>-<angle>`` turns the grid (the line-ground table is calibrated over
+    lines of every orientation): the bright lines' direction follows the angle, the
+    unturned name is angle 0, and both kinds still share one layout."""
+    from emdflow.synthetic import load_texture
+
+    assert np.array_equal(load_texture("lines-3-0"), load_texture("lines-3"))
+    assert np.array_equal(load_texture("lines-3-360"), load_texture("lines-3"))
+
+    def line_angles(image):
+        """Orientations (degrees mod 180) of the strongest straight bright lines."""
+        centre = image[256:768, 256:768]
+        bright = np.argwhere(centre > 140)
+        best = []
+        for a in np.arange(0.0, 180.0, 1.0):
+            t = math.radians(a)
+            # project onto the line normal: a straight line piles up in one bin
+            offsets = bright[:, 1] * math.cos(t) + bright[:, 0] * math.sin(t)
+            best.append(np.bincount(np.round(offsets - offsets.min()).astype(int)).max())
+        best = np.array(best)
+        return {int(a) for a in np.flatnonzero(best > 0.8 * best.max())}
+
+    assert line_angles(load_texture("lines-3")) <= {0, 1, 89, 90, 91, 179}
+    turned = line_angles(load_texture("lines-3-30"))
+    # a normal at 0° turns to -30° = 150° (the image's y axis points down)
+    assert turned and all(min(abs(a - 150), abs(a - 60)) <= 2 for a in turned), turned
+    lines, cells = load_texture("lines-5-30"), load_texture("cells-5-30")
+    bright = lines > 140
+    jump = np.abs(np.diff(cells, axis=1)) > 15  # where the cells' levels change
+    assert bright.mean() > 0.05 and jump[:, :-1][bright[:, 1:-1]].mean() > 4 * jump.mean()
 
 
 @pytest.mark.parametrize("flow", [(7.0, 0.0), (0.0, -5.0)])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 import time
 
 import numpy as np
@@ -289,6 +290,85 @@ def test_a_table_is_selected_per_channel_set():
     # the paper's channels with the adaptive threshold keep the paper's table
     assert calibration_for(EngineParams(threshold_mode="adaptive")) == CALIBRATION_FILE
     assert calibration_for(EngineParams(scales=(1, 3, 5))) is None
+
+
+# ---- line ground: a second table, measured over grids of thin bright lines ----
+def test_line_ground_tables_are_their_own():
+    """The extended model's channels have a line-ground table next to their edge table
+    (the paper's have none: without gradient-strength classes the likelihood cannot tell
+    lines from edges, README "Thin lines read slow"); the edge table stays the one
+    :func:`calibration_for` names by default; a wrong ground name says what is expected."""
+    lines = calibration_for(EXT_PARAMS, "lines")
+    assert lines is not None and lines.name == "summary_calibration_extended_lines.npz"
+    assert calibration_for(EXT_PARAMS, "edges") == calibration_for(EXT_PARAMS) != lines
+    z = np.load(lines)
+    assert str(z["ground"]) == "lines" and "ground" not in np.load(calibration_for(EXT_PARAMS)).files
+    assert tuple(map(tuple, z["channels"])) == EXT_PARAMS.channels
+    assert np.all(np.isfinite(z["misfit_baseline"])) and np.all(z["misfit_baseline"] > 0)
+    assert calibration_for(PARAMS, "lines") is None
+    assert calibration_for(EngineParams(scales=(1, 3, 5)), "lines") is None
+    with pytest.raises(ValueError, match="expected 'edges' or 'lines'"):
+        calibration_for(PARAMS, "tiles")
+    with pytest.raises(ValueError, match=r"SummaryOptions\(ground='tiles'\): expected one of"):
+        SummaryOptions(ground="tiles")
+
+
+@pytest.mark.parametrize("flow", [(7.0, 2.0), (-3.0, 8.0), (-10.0, -4.0)])
+def test_the_summary_reads_line_ground_with_its_table(flow):
+    """Detections drawn from the line-ground table: the edge table alone reads them
+    slow (0.88-0.90x), the summary picks the line table and recovers the flow; detections
+    drawn from the edge table never pick it, and their summary is the edge table's."""
+    params, classes = EXT_PARAMS, True
+    stats = _stats(params, gradient=8.0)
+    speed = math.hypot(*flow)
+    edges_only = SummaryOptions(ground="edges")
+    hist = model_histogram(flow, seed=3, table=calibration_for(params, "lines"), classes=classes,
+                           gradient=8.0)
+    field = _field(hist, stats=stats, params=params, frame_index=20)
+    s, slow = summarize(field), summarize(field, options=edges_only)
+    assert s.line_ground and not slow.line_ground
+    assert math.hypot(s.flow_x - flow[0], s.flow_y - flow[1]) / speed < 0.03
+    assert slow.speed < 0.92 * speed
+    forced = summarize(field, options=SummaryOptions(ground="lines"))
+    assert forced.line_ground and (forced.flow_x, forced.flow_y) == (s.flow_x, s.flow_y)
+    hist = model_histogram(flow, seed=3, table=calibration_for(params), classes=classes, gradient=8.0)
+    field = _field(hist, stats=stats, params=params, frame_index=20)
+    assert summarize(field) == summarize(field, options=edges_only)
+    assert not summarize(field).line_ground
+    # channels without a line table (the paper's): "lines" falls back to the edge table
+    paper = _field(model_histogram(flow, seed=3))
+    assert summarize(paper, options=SummaryOptions(ground="lines")) == summarize(paper)
+    assert not summarize(paper).line_ground
+
+
+@pytest.mark.parametrize("texture,speed,angle_deg,picked", [
+    ("lines-5-30", 7.0, 200.0, True), ("lines-6-10", 11.0, 100.0, True),
+    ("gravel", 9.0, 20.0, False), ("camera", 3.0, 200.0, False),
+])
+def test_extended_line_ground_on_rendered_flights(texture, speed, angle_deg, picked):
+    """The extended model over a turned grid of thin lines that no calibration flew over
+    (lines-5-30, lines-6-10): every frame is read with the line-ground table, within 10 %
+    where the edge table alone is 14-19 % off; over gravel and the camera photograph no
+    frame is, and the answers are the edge table's."""
+    th = math.radians(angle_deg)
+    flow = (speed * math.cos(th), speed * math.sin(th))
+    start = (512.0, 512.0) if texture.startswith("lines") else None
+    flight = CameraFlight(texture, width=W, height=H, flow=flow, noise_sigma=2.0, seed=3, start=start)
+    est = emdflow.FlowEstimator(W, H, backend="opencl", **EXTENDED)
+    edges_only = SummaryOptions(ground="edges")
+    errors, edge_errors = [], []
+    for t in range(est.params.history_frames + 4):
+        field = est.update(flight.render(t))
+        if not field.ready:
+            continue
+        s, e = summarize(field), summarize(field, options=edges_only)
+        assert s.quality > 0 and s.line_ground == picked
+        if not picked:
+            assert s == e
+        errors.append(math.hypot(s.flow_x - flow[0], s.flow_y - flow[1]) / speed)
+        edge_errors.append(math.hypot(e.flow_x - flow[0], e.flow_y - flow[1]) / speed)
+    if picked:
+        assert np.median(errors) < 0.1 and np.median(edge_errors) > 0.13
 
 
 @pytest.mark.parametrize("gradient", [2.0, 8.0, 16.0])  # the three scene-contrast classes
@@ -630,3 +710,54 @@ def test_evaluation_tells_a_search_miss_from_a_table_that_prefers_the_wrong_answ
                         np.array([truth, truth, truth]), err, out=lines.append)
     assert len(lines) == 1 and "more than 3 deg off: 2;" in lines[0]
     assert "more likely than the answer in 1 (50 %" in lines[0] and "less likely in 1 " in lines[0]
+
+
+def test_fit_writes_a_line_ground_table(monkeypatch, tmp_path):
+    """``calibrate_summary fit --ground lines --write``: the table names its ground, carries
+    a misfit baseline, and a contrast class without flights takes the nearest filled one's
+    distributions (no line ground is as rough as gravel); the edge table still refuses a
+    class without flights."""
+    from emdflow.tools import calibrate_summary as cs
+
+    # 3 px/frame in 32 directions: enough frames at one node of the misfit baseline
+    flows = [(3.0 * math.cos(a), 3.0 * math.sin(a)) for a in np.arange(32) * (2 * math.pi / 32)]
+    hist = np.stack([model_histogram(f, seed=i, table=calibration_for(EXT_PARAMS, "lines"),
+                                     classes=True, gradient=8.0) for i, f in enumerate(flows)])
+    data = tmp_path / "flights.npz"  # every frame in the middle contrast class (g = 8)
+    np.savez(data, hist=hist.astype(np.int32), flow=np.array(flows), model=np.array("extended"),
+             stats=np.stack([_stats(EXT_PARAMS, gradient=8.0)] * len(flows)))
+    written = {}
+    monkeypatch.setattr(cs, "calibration_path",
+                        lambda model, ground="edges": written.setdefault(ground, tmp_path / f"{ground}.npz"))
+    cs.main(["fit", "--model", "extended", "--ground", "lines", "--write", str(data)])
+    z = np.load(written["lines"])
+    assert str(z["ground"]) == "lines" and tuple(map(tuple, z["channels"])) == EXT_PARAMS.channels
+    assert z["prob"].shape[0] == 3 and np.array_equal(z["prob"][0], z["prob"][1])
+    assert np.array_equal(z["prob"][2], z["prob"][1])
+    assert z["misfit_baseline"].shape == z["misfit_speeds"].shape
+    with pytest.raises(SystemExit, match="no calibration frames in contrast class 0"):
+        cs.main(["fit", "--model", "extended", "--write", str(data)])
+
+
+def test_margin_sweep_scores_stored_flights(monkeypatch, tmp_path, capsys):
+    """``calibrate_summary margin F``: one row for the edge table alone and one per margin,
+    each texture's error with its share of frames read with the line table (none for the
+    edge table alone, and fewer or as many as the margin grows); a malformed margin list
+    is refused with a message that names the option."""
+    from emdflow.tools import calibrate_summary as cs
+
+    monkeypatch.setitem(cs.MODEL_EVALUATION_SPEEDS, "extended", (7,))
+    out = tmp_path / "flights.npz"
+    cs.main(["evaluate", "--model", "extended", "--size", "160x120", "--frames", "2", "--random",
+             "--textures", "lines-5-30,gravel", "--save", str(out)])
+    capsys.readouterr()
+    cs.main(["margin", str(out), "--margins", "0,1000"])
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[1].split("|")[2:] == [" lines-5-30 ", " gravel"]
+    rows = {line.split("|")[0].strip(): line for line in printed[2:]}
+    assert list(rows) == ["edges", "0", "1000"]
+    shares = {k: [int(x) for x in re.findall(r"\(\s*(\d+) %\)", v)] for k, v in rows.items()}
+    assert shares["edges"] == [0, 0] and shares["1000"] == [0, 0] and shares["0"][0] > 0
+    with pytest.raises(SystemExit):
+        cs.main(["margin", str(out), "--margins", "1,x"])
+    assert "--margins" in capsys.readouterr().err

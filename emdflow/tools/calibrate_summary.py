@@ -73,6 +73,37 @@ channel, adaptive threshold, brightness compensation) has its own table, ``emdfl
     python -m emdflow.tools.calibrate_summary evaluate --model extended --random --drift 0.2
     python -m emdflow.tools.calibrate_summary evaluate --model extended --random --drift -0.2
 
+The extended model also has a **line-ground table**,
+``emdflow/summary_calibration_extended_lines.npz`` (``fit --ground lines``): the same
+measurement over grids of thin bright lines (``lines-<seed>-<angle>``,
+:func:`emdflow.synthetic.grid_texture`: 4 px lines, columns 15–50 px and rows 40–120 px
+apart, turned to 16 angles so the table knows lines of every orientation; the ground
+scale 0.7–2 makes them 2–6 px wide in the image), which the summary reads next to the edge
+table (``SummaryOptions.ground``; ~3.5, 3.5 and 2.5 minutes of collection)::
+
+    A=lines-11-0,lines-12-11,lines-13-23,lines-14-34,lines-15-45,lines-16-56,lines-17-68,lines-18-79
+    B=lines-21-6,lines-22-17,lines-23-28,lines-24-40,lines-25-51,lines-26-62,lines-27-73,lines-28-84
+    LINES="python -m emdflow.tools.calibrate_summary collect --model extended --frames 8 \
+        --scale-range 0.7,2"
+    $LINES --flights 2800 --seed 105 --textures $A --out /tmp/emdflow_lines_ext.npz
+    $LINES --flights 2800 --seed 106 --textures $B --out /tmp/emdflow_lines_ext2.npz
+    # the top scene-contrast class (g > 12): the same grids at 1.6-2.6x their contrast
+    $LINES --flights 2000 --seed 107 --contrast-range 1.6,2.6 --textures $B \
+        --out /tmp/emdflow_lines_ext3.npz
+    python -m emdflow.tools.calibrate_summary fit --model extended --ground lines \
+        /tmp/emdflow_lines_ext.npz /tmp/emdflow_lines_ext2.npz /tmp/emdflow_lines_ext3.npz --write
+    # SummaryOptions.line_ground_margin against accuracy, on validation flights over grounds
+    # that neither calibration nor the evaluation flew over (two rough 1/f textures, one
+    # grid of step edges, two turned grids of lines)
+    V=fractal-1.1-91-50,fractal-1.4-92-30,cells-93-40,lines-91-20,lines-92-65
+    python -m emdflow.tools.calibrate_summary evaluate --model extended --random \
+        --textures $V --save /tmp/emdflow_validation_ext.npz
+    python -m emdflow.tools.calibrate_summary margin /tmp/emdflow_validation_ext.npz
+
+The paper's model has no line-ground table: the same recipe without ``--model extended``
+(``--flights 3000``, seeds 5 and 6, no third set) makes one, but without gradient-strength
+classes its likelihood cannot tell lines from edges (README, "Thin lines read slow").
+
 (extended flights: speeds log-uniform 0.15..18 px/frame, contrast log-uniform 0.2..1 unless
 ``--contrast-range``, 60 % with an exposure drift uniform in ±30 % across the flight, 12
 frames of history before the ``--frames`` recorded ones.)
@@ -111,6 +142,9 @@ from emdflow.params import MODELS as _MODELS
 from emdflow.tools import interp_weights
 
 CALIBRATION_TEXTURES = ("moon", "coffee", "astronaut", "rocket")
+#: Kinds of ground a table is measured over (``fit --ground``): the photographs' edges, or
+#: grids of thin bright lines (``lines-<seed>-<angle>``, :func:`emdflow.synthetic.grid_texture`).
+GROUNDS = ("edges", "lines")
 
 
 def inside_start(rng, size, view, shift):
@@ -143,10 +177,12 @@ def model_params(model: str):
     return EngineParams(**MODELS[model])
 
 
-def calibration_path(model: str) -> Path:
-    """Where ``fit --write`` stores the table of ``model`` (summary.py finds it there)."""
-    name = "summary_calibration.npz" if model == "paper" else f"summary_calibration_{model}.npz"
-    return Path(__file__).resolve().parents[1] / name
+def calibration_path(model: str, ground: str = "edges") -> Path:
+    """Where ``fit --write`` stores the table of ``model`` for ``ground`` (summary.py finds
+    it there): ``summary_calibration[_<model>][_lines].npz``."""
+    name = "summary_calibration" + ("" if model == "paper" else f"_{model}")
+    name += "" if ground == "edges" else f"_{ground}"
+    return Path(__file__).resolve().parents[1] / (name + ".npz")
 
 
 def _checked_noise(lo, hi, name: str) -> tuple[float, float]:
@@ -406,7 +442,7 @@ def _frame_chunks(data, model: str, params, samples: int, chunk: int = FIT_CHUNK
         yield tuple(np.concatenate(a) for a in zip(*parts))
 
 
-def fit_main(data, write, model="paper"):
+def fit_main(data, write, model="paper", ground="edges"):
     params = model_params(model)
     samples = params.contrast_samples(320, 240)  # collect renders 320x240
     u_offset, u_count = U_GRID[model]
@@ -424,8 +460,16 @@ def fit_main(data, write, model="paper"):
             frames[c] += int(m.sum())
         del hist, flow, g
     Ps, tots, P_all = [], [], []
-    for c, Nc in enumerate(counts):
+    filled_classes = [c for c, Nc in enumerate(counts) if Nc is not None]
+    for c in range(len(counts)):
         print(f"contrast class {c}: {frames[c]} frames")
+        if counts[c] is None and ground != "edges" and filled_classes:
+            # a ground table may lack a contrast class (no thin-line ground as rough as
+            # gravel): the nearest class with flights stands in for it
+            near = min(filled_classes, key=lambda k: abs(k - c))
+            print(f"  no frames: contrast class {near}'s distributions stand in")
+            counts[c] = counts[near]
+    for c, Nc in enumerate(counts):
         if Nc is None:
             raise SystemExit(f"no calibration frames in contrast class {c} (edges {edges})")
         P, tot, P_all_c = class_tables(Nc)
@@ -437,7 +481,7 @@ def fit_main(data, write, model="paper"):
         tots.append(tot)
     P, tot = (Ps[0], tots[0]) if not edges else (np.stack(Ps), np.stack(tots))
     prob_all = P_all[0] if not edges else np.stack(P_all)
-    out = calibration_path(model)
+    out = calibration_path(model, ground)
     if write:
         if GRADIENT_CLASS_TABLES[model]:
             extra = {"gradient_class_steps": np.asarray(GRADIENT_CLASS_STEPS, np.int64),
@@ -450,6 +494,8 @@ def fit_main(data, write, model="paper"):
                          threshold_mode=np.array(params.threshold_mode), model=np.array(model))
         if edges:
             extra.update(contrast_edges=np.asarray(edges, np.float64))
+        if ground != "edges":
+            extra.update(ground=np.array(ground))
         np.savez_compressed(
             out, prob=P.astype(np.float32), psi_nodes_deg=np.asarray(PSI_NODES_DEG),
             beta_nodes=np.asarray(BETA_NODES), u_nodes=u_nodes(u_offset, u_count),
@@ -457,7 +503,7 @@ def fit_main(data, write, model="paper"):
             speeds=np.array(params.speeds, np.float64), **extra,
         )
         print(f"wrote {out}")
-        write_misfit(data, model, out)
+        write_misfit(data, model, out, ground=ground)
 
 #: Speeds (px/frame) at which a table stores the calibration flights' median
 #: :attr:`FlowSummary.deviance` (the baseline of the summary's misfit term), from this
@@ -468,16 +514,18 @@ MISFIT_SEED = 20241122
 
 
 def misfit_baseline(data, model: str, frames: int = MISFIT_FRAMES, seed: int = MISFIT_SEED,
-                    min_frames: int = 30):
+                    min_frames: int = 30, ground: str = "edges"):
     """Median :attr:`FlowSummary.deviance` of calibration frames per node of
     :data:`MISFIT_SPEEDS`, by the summary's own speed (frames whose estimate falls between
     the midpoints, in log speed, around the node; a node with fewer than ``min_frames``
-    frames is interpolated from its neighbours). The summary must already read ``model``'s table.
-    Returns ``(median per node, frames per node)``."""
+    frames is interpolated from its neighbours), the summary reading ``ground``'s table
+    alone (which must already be written). Returns ``(median per node, frames per node)``."""
     from emdflow import summarize
     from emdflow.field import FlowField
     from emdflow.reference import STAT_FIRST_CHANGED
+    from emdflow.summary import SummaryOptions
 
+    options = SummaryOptions(ground=ground)
     params = model_params(model)
     sizes = []
     for path in data:
@@ -496,7 +544,8 @@ def misfit_baseline(data, model: str, frames: int = MISFIT_FRAMES, seed: int = M
             raise SystemExit(f"{path}: {stats.shape[1]} statistics per frame, the engine now makes "
                              f"{STAT_FIRST_CHANGED + len(params.channels)}: collect it again")
         for hi, st in zip(hist, stats):
-            s = summarize(FlowField(codes, codes, st, hi, params, params.history_frames + 1))
+            s = summarize(FlowField(codes, codes, st, hi, params, params.history_frames + 1),
+                          options=options)
             if s.quality > 0 and not s.static:
                 deviance.append(s.deviance)
                 speed.append(s.speed)
@@ -513,19 +562,20 @@ def misfit_baseline(data, model: str, frames: int = MISFIT_FRAMES, seed: int = M
     return np.interp(nodes, nodes[filled], median[filled]), counts
 
 
-def write_misfit(data, model: str, path: Path | None = None, **baseline_options) -> Path:
+def write_misfit(data, model: str, path: Path | None = None, ground: str = "edges",
+                 **baseline_options) -> Path:
     """Add the misfit baseline (:func:`misfit_baseline` of ``data``) to ``model``'s table
-    (``path``: another copy of it)."""
+    for ``ground`` (``path``: another copy of it)."""
     import emdflow.summary as summary
 
-    path = calibration_path(model) if path is None else Path(path)
+    path = calibration_path(model, ground) if path is None else Path(path)
     with np.load(path) as z:
         table = {k: z[k] for k in z.files if k not in ("misfit_speeds", "misfit_baseline")}
     # the summary reads the tables as they are on disk now (the deviance does not depend
     # on an old baseline: it is measured at the answer, which the misfit term leaves alone)
     summary._CALIBRATION.clear()
     summary._MODEL_CACHE.clear()
-    baseline, counts = misfit_baseline(data, model, **baseline_options)
+    baseline, counts = misfit_baseline(data, model, ground=ground, **baseline_options)
     print("misfit baseline (median deviance per detection) at", " ".join(
         f"{v:g}: {b:.3f} ({n})" for v, b, n in zip(MISFIT_SPEEDS, baseline, counts)))
     np.savez_compressed(path, **table, misfit_speeds=np.asarray(MISFIT_SPEEDS, np.float64),
@@ -632,12 +682,8 @@ def score(data, options=None, out=print):
     speed = np.hypot(flows[:, 0], flows[:, 1])
     err = np.empty((len(sums), 2))
     qual = np.array([s.quality for s in sums])
-    for i, (s, (fu, fv), sp) in enumerate(zip(sums, flows, speed)):
-        if s.quality == 0:
-            err[i] = 1.0, 180.0
-        else:
-            d = math.degrees(math.atan2(s.flow_y, s.flow_x) - math.atan2(fv, fu))
-            err[i] = math.hypot(s.flow_x - fu, s.flow_y - fv) / sp, abs((d + 180) % 360 - 180)
+    for i, (s, (fu, fv)) in enumerate(zip(sums, flows)):
+        err[i] = _frame_error(s, fu, fv)
     out("  speed | frames | median rel error | median direction error | coverage")
     for sp in np.unique(np.round(speed, 6)):
         m = np.isclose(speed, sp)
@@ -656,6 +702,7 @@ def score(data, options=None, out=print):
         _print_flight_bias(sums, flows, int(data["flight_frames"]), out)
     if "texture" in data:
         _print_texture_speed(sums, flows, np.asarray(data["texture"]), out)
+        _print_line_share(sums, flows, np.asarray(data["texture"]), out)
     _print_search_check(fields, sums, flows, err, options, out)
     rated = qual > 0
     if rated.sum() > 2:
@@ -685,6 +732,68 @@ def _print_texture_speed(sums, flows, textures, out=print):
         out(f"    {sp:5.4g} | " + " | ".join(f"{c:7.3f}" for c in cells))
 
 
+def _print_line_share(sums, flows, textures, out=print):
+    """Per speed and texture, the share of frames whose answer is the line-ground table's
+    (:attr:`FlowSummary.line_ground`); nothing when no frame's is."""
+    on_lines = np.array([s.line_ground for s in sums])
+    if not on_lines.any():
+        return
+    speed = np.hypot(*np.asarray(flows, np.float64).T)
+    names = list(dict.fromkeys(str(t) for t in textures))
+    out("  share of frames read with the line-ground table: speed | "
+        + " | ".join(f"{n:>7s}" for n in names))
+    for sp in np.unique(np.round(speed, 6)):
+        at = np.isclose(speed, sp)
+        cells = [np.mean(on_lines[at & (textures == n)]) * 100 for n in names]
+        out(f"    {sp:5.4g} | " + " | ".join(f"{c:5.0f} %" for c in cells))
+
+
+def margin_sweep(paths, margins, out=print):
+    """:attr:`SummaryOptions.line_ground_margin` against accuracy: for each stored set of
+    flights (``evaluate --save``) and each margin, the median relative and direction error
+    of all frames and each texture's median relative error and share of frames read with
+    the line-ground table (``ground="edges"``: the edge table alone, for reference)."""
+    from emdflow import summarize
+    from emdflow.field import FlowField
+    from emdflow.params import EngineParams
+    from emdflow.summary import SummaryOptions
+
+    for path in paths:
+        with np.load(path) as z:
+            data = {k: z[k] for k in z.files}
+        h, w = (int(x) for x in data["shape"])
+        codes = np.zeros((h, w), np.int8)
+        params = EngineParams(**MODELS[str(data["model"])])
+        fields = [FlowField(codes, codes, st, hi, params, int(data["frame_index"]))
+                  for hi, st in zip(data["hist"], data["stats"])]
+        flows = np.asarray(data["flow"], np.float64)
+        textures = np.asarray(data["texture"])
+        names = list(dict.fromkeys(str(t) for t in textures))
+        out(f"{path}: {len(fields)} frames, {data['model']} model; per texture: relative error "
+            "(share read with the line table)")
+        out("  margin | all speeds | " + " | ".join(names))
+        for margin in [None, *margins]:
+            options = (SummaryOptions(ground="edges") if margin is None
+                       else SummaryOptions(line_ground_margin=margin))
+            sums = [summarize(f, options=options) for f in fields]
+            err = np.array([_frame_error(s, fu, fv) for s, (fu, fv) in zip(sums, flows)])
+            on_lines = np.array([s.line_ground for s in sums])
+            cells = [f"{np.median(err[textures == n, 0]) * 100:4.1f} % "
+                     f"({np.mean(on_lines[textures == n]) * 100:3.0f} %)" for n in names]
+            label = "edges" if margin is None else f"{margin:g}"
+            out(f"  {label:>6s} | {np.median(err[:, 0]) * 100:4.1f} % / {np.median(err[:, 1]):4.2f} deg | "
+                + " | ".join(cells))
+
+
+def _frame_error(s, fu: float, fv: float) -> tuple[float, float]:
+    """(relative error, direction error in degrees) of summary ``s`` against the true flow;
+    a quality-0 frame counts as (1, 180)."""
+    if s.quality == 0:
+        return 1.0, 180.0
+    d = math.degrees(math.atan2(s.flow_y, s.flow_x) - math.atan2(fv, fu))
+    return math.hypot(s.flow_x - fu, s.flow_y - fv) / math.hypot(fu, fv), abs((d + 180) % 360 - 180)
+
+
 def _print_search_check(fields, sums, flows, err, options=None, out=print, limit_deg: float = 3.0):
     """Of the frames whose direction is more than ``limit_deg`` off, how many the search
     failed (the true flow explains the detections better than the answer: a search
@@ -696,7 +805,8 @@ def _print_search_check(fields, sums, flows, err, options=None, out=print, limit
     for field, s, (fu, fv), e in zip(fields, sums, flows, err):
         if s.quality == 0 or s.static or e[1] <= limit_deg:
             continue
-        values = _log_likelihood_at(field, [(fu, fv), (s.flow_x, s.flow_y)], options)
+        values = _log_likelihood_at(field, [(fu, fv), (s.flow_x, s.flow_y)], options,
+                                    "lines" if s.line_ground else "edges")
         if values is None:
             continue
         wrong += 1
@@ -797,9 +907,18 @@ def main(argv=None):
                    help="write emdflow/summary_calibration.npz (paper) or "
                         "emdflow/summary_calibration_<model>.npz")
     f.add_argument("--model", default="paper", choices=tuple(MODELS))
+    f.add_argument("--ground", default="edges", choices=GROUNDS,
+                   help="the kind of ground the flights flew over: edges (the main table) or "
+                        "lines (the line-ground table, summary_calibration[_<model>]_lines.npz)")
     m = sub.add_parser("misfit", help="(re)measure only the misfit baseline of a written table")
     m.add_argument("data", nargs="+")
     m.add_argument("--model", default="paper", choices=tuple(MODELS))
+    m.add_argument("--ground", default="edges", choices=GROUNDS)
+    g = sub.add_parser("margin", help="accuracy against SummaryOptions.line_ground_margin on "
+                                      "flights stored by evaluate --save")
+    g.add_argument("data", nargs="+")
+    g.add_argument("--margins", default="0,5,10,15,20,30",
+                   help="comma-separated margins to try, nats (default 0,5,10,15,20,30)")
     e = sub.add_parser("evaluate")
     e.add_argument("--offset", type=float, default=0.3, help="direction offset, radians")
     e.add_argument("--random", action="store_true",
@@ -814,6 +933,9 @@ def main(argv=None):
                    help="exposure drift across each flight (e.g. 0.2 for +20 %%)")
     e.add_argument("--ioc", action="store_true",
                    help="score the IoC fit alone (SummaryOptions(likelihood=False))")
+    e.add_argument("--ground", default="auto", choices=("auto",) + GROUNDS,
+                   help="the tables the summary reads (SummaryOptions.ground; default auto: the "
+                        "edge table and, where it explains a frame better, the line-ground one)")
     e.add_argument("--evidence-row-step", type=int, default=0,
                    help="rows between the rows that feed the summary's evidence (EngineParams; "
                         "default 0: automatic, every 4th row at 240 px)")
@@ -845,15 +967,19 @@ def main(argv=None):
                                 if a.contrast_range else None),
                 evidence_row_step=a.evidence_row_step, noise_range=noise_range)
     elif a.cmd == "fit":
-        fit_main(a.data, a.write, a.model)
+        fit_main(a.data, a.write, a.model, a.ground)
     elif a.cmd == "misfit":
-        write_misfit(a.data, a.model)
+        write_misfit(a.data, a.model, ground=a.ground)
+    elif a.cmd == "margin":
+        try:
+            margins = [float(x) for x in a.margins.split(",")]
+        except ValueError:
+            ap.error(f"--margins {a.margins!r}: expected comma-separated numbers")
+        margin_sweep(a.data, margins)
     else:
-        options = None
-        if a.ioc:
-            from emdflow.summary import SummaryOptions
+        from emdflow.summary import SummaryOptions
 
-            options = SummaryOptions(likelihood=False)
+        options = SummaryOptions(likelihood=not a.ioc, ground=a.ground)
         from emdflow.tools.video_io import parse_size
 
         try:
