@@ -149,8 +149,8 @@ Extended model (``scales=(1, 3, …, 13, 15)``, ``delays=(1, 2, 4)``, ``delay_sc
 adaptive threshold, brightness compensation; its own table with gradient-strength
 classes): 10 speeds (0.25, 0.5, 1, 2, 3, 5, 7, 9, 11, 13 px/frame) × the same 4
 evaluation textures × 8 directions × 6 frames = 1920 frames per set, coverage 100 % in
-every set (``evaluate --model extended --random`` etc.; see ``calibrate_summary``).
-Median relative error, median direction error:
+every set (``evaluate --model extended --random`` etc.; see ``calibrate_summary``), read
+with its edge and line-ground tables. Median relative error, median direction error:
 
 ==========================================  ==============  ================  ====================
 set                                         all speeds      0.25 px/frame     edge table alone
@@ -191,7 +191,8 @@ call back to back at 640×480 (plus ~0.025 ms for the deviance) and 0.8–1.2 ms
 each frame's update, when the engine has evicted the table from the caches (``emdflow
 bench --stages --model extended``); the line-ground table's second fit doubles it (0.97
 against 0.53 ms back to back at 320×240 and at 640×480, ``calibrate_summary evaluate
---data F --ground auto|edges``; 1.25 ms after each update, on another host): the
+--data F --ground auto|edges``; 1.25 ms after each update, measured on an Intel Xeon host
+where the figures above were on an AMD EPYC one): the
 curves of up to four classes per row, ~2 000 nonzero counts, each a 240-entry table row,
 summed by one compiled sparse product (numpy's padded batched product took ~0.85 ms back
 to back). Without the classes
@@ -243,7 +244,9 @@ _CSR_MATVECS = _compiled_csr_product()
 #: ``python -m emdflow.tools.calibrate_summary fit --write``.
 CALIBRATION_FILE = Path(__file__).with_name("summary_calibration.npz")
 #: Tables of other channel sets sit next to it as ``summary_calibration_<model>.npz``
-#: (``fit --model <model> --write``); each names its channels and threshold mode.
+#: (``fit --model <model> --write``), each naming its channels and threshold mode, and
+#: line-ground tables as ``summary_calibration[_<model>]_lines.npz`` (``fit --ground
+#: lines``), each naming its ground.
 CALIBRATION_GLOB = "summary_calibration*.npz"
 #: Values of :attr:`SummaryOptions.ground`; a table's own ``ground`` (``"edges"`` when
 #: it names none) is one of the last two.
@@ -278,9 +281,9 @@ class FlowSummary:
         ~0.1–0.6 (paper table) or ~0.25–1.2 (extended), rising with speed; more means a scene
         unlike the calibration's, and lowers the quality (``SummaryOptions.misfit_weight``).
     line_ground : bool
-        True when the answer is the line-ground table's: the frame's detections are
-        better explained by thin lines (mortar, paving joints, tiles) than by edges
-        (``SummaryOptions.ground``).
+        True when the answer is the line-ground table's: with ``SummaryOptions.ground``
+        ``"auto"`` the frame's detections are better explained by thin lines (mortar,
+        paving joints, tiles) than by edges; with ``"lines"`` the table was forced.
     """
 
     flow_x: float = 0.0
@@ -361,9 +364,12 @@ class SummaryOptions:
         table, and where the channel set also has a *line-ground* table (measured over
         grids of thin bright lines, ``calibrate_summary fit --ground lines``) that one
         too; the answer is the line table's when it explains the frame's detections
-        better by more than ``line_ground_margin``. ``"edges"``: the edge table alone (the
-        summary before line ground was known). ``"lines"``: the line table alone (where
-        the channel set has one; for calibration and diagnosis). Thin lines fire only
+        better by more than ``line_ground_margin``; only for histograms with
+        gradient-strength classes (without them lines and edges do not tell apart, so
+        ``EngineParams.gradient_classes=False`` reads the edge table alone). ``"edges"``:
+        the edge table alone (the summary before line ground was known). ``"lines"``: the
+        line table alone (for calibration and diagnosis; a channel set without one reads
+        its edge table). Thin lines fire only
         their speed's scale where an edge also fires larger ones, so the edge table
         alone reads them slow (README, "Thin lines read slow").
     line_ground_margin : float
@@ -655,8 +661,8 @@ def _table_matches(table: dict, params: EngineParams, ground: str = "edges"):
 
 
 def calibration_for(params: EngineParams, ground: str = "edges"):
-    """Path of the calibration table :func:`summarize` uses for ``params``, or None when
-    none matches its channel set (the summary is then the IoC fit alone).
+    """Path of the (edge) calibration table :func:`summarize` uses for ``params``, or None
+    when none matches its channel set (the summary is then the IoC fit alone).
 
     A table must be for exactly ``params.channels``; among those, one made with the same
     ``threshold_mode`` is preferred. ``ground="lines"`` asks for the channel set's
@@ -1050,7 +1056,9 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
         curves, saturated = fitted
         U1, V1, sig_s, sig_a, loglik = _likelihood_fit(model, curves, U, V)
         line_model = _model_of(field, opts, "lines") if opts.ground == "auto" else None
-        if line_model is not None:
+        # without gradient-strength classes the line table cannot tell lines from edges
+        # (README, "Thin lines read slow"): only a histogram with classes gets its fit
+        if line_model is not None and line_model.classes > 1:
             # the same histogram under the line-ground table, from the same guess; the
             # saturated model depends on the counts alone, so the deviances compare
             line_fitted = _fitted_curves(line_model, full, hist, opts)

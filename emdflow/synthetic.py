@@ -79,9 +79,10 @@ def grid_texture(kind: str, seed: int, size: int = 1024, line_width: int = 4,
     do to the detector: on an axis flight a line fires the scale of its speed and nothing
     above, where an edge also fires the next larger scales (README, "Thin lines read slow").
 
-    ``angle_deg`` turns the grid (counter-clockwise in the image, degrees): the grid is
-    drawn on a square ``√2`` times larger (so its layout differs from the unturned one of
-    the same seed), turned with bilinear interpolation about its centre and cut to
+    ``angle_deg`` turns the grid (counter-clockwise in the image, degrees): unless it is a
+    multiple of 360°, the grid is drawn on a square ``√2`` times larger (so its layout
+    differs from the unturned one of the same seed), turned with bilinear interpolation
+    about its centre and cut to
     ``size``. The summary's line-ground table is calibrated on turned grids, so that it
     knows lines of every orientation, not only the axes'."""
     if kind not in ("lines", "cells"):
@@ -136,7 +137,8 @@ def _load_texture_cached(name: str) -> np.ndarray:
             raise ValueError(f"texture {name!r}: expected fractal-<beta>-<seed>[-<sigma>], "
                              "e.g. fractal-1.0-1 or fractal-0.8-3-60") from None
     elif name.startswith(("lines-", "cells-")) and not Path(name).is_file():
-        kind, *fields = name.split("-")
+        kind, _, rest = name.partition("-")
+        fields = rest.split("-", 1)  # the angle may carry its own minus sign
         try:  # <kind>-<seed>[-<angle in degrees>]
             if not (1 <= len(fields) <= 2 and fields[0].isdigit()):
                 raise ValueError(name)

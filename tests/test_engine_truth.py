@@ -343,6 +343,7 @@ def test_turned_grids_turn_the_lines():
 
     assert np.array_equal(load_texture("lines-3-0"), load_texture("lines-3"))
     assert np.array_equal(load_texture("lines-3-360"), load_texture("lines-3"))
+    assert np.array_equal(load_texture("lines-3--30"), load_texture("lines-3-330"))
 
     def line_angles(image):
         """Orientations (degrees mod 180) of the strongest straight bright lines."""

@@ -335,6 +335,10 @@ def test_the_summary_reads_line_ground_with_its_table(flow):
     field = _field(hist, stats=stats, params=params, frame_index=20)
     assert summarize(field) == summarize(field, options=edges_only)
     assert not summarize(field).line_ground
+    # a histogram without gradient classes cannot tell lines from edges: no line fit
+    folded = _field(model_histogram(flow, seed=3, table=calibration_for(params, "lines"), gradient=8.0),
+                    stats=stats, params=params, frame_index=20)
+    assert summarize(folded) == summarize(folded, options=edges_only)
     # channels without a line table (the paper's): "lines" falls back to the edge table
     paper = _field(model_histogram(flow, seed=3))
     assert summarize(paper, options=SummaryOptions(ground="lines")) == summarize(paper)
@@ -742,8 +746,8 @@ def test_fit_writes_a_line_ground_table(monkeypatch, tmp_path):
 def test_margin_sweep_scores_stored_flights(monkeypatch, tmp_path, capsys):
     """``calibrate_summary margin F``: one row for the edge table alone and one per margin,
     each texture's error with its share of frames read with the line table (none for the
-    edge table alone, and fewer or as many as the margin grows); a malformed margin list
-    is refused with a message that names the option."""
+    edge table alone or a prohibitive margin, some over lines at margin 0); a malformed
+    margin list or ground name is refused with a message that names the option."""
     from emdflow.tools import calibrate_summary as cs
 
     monkeypatch.setitem(cs.MODEL_EVALUATION_SPEEDS, "extended", (7,))
@@ -761,3 +765,8 @@ def test_margin_sweep_scores_stored_flights(monkeypatch, tmp_path, capsys):
     with pytest.raises(SystemExit):
         cs.main(["margin", str(out), "--margins", "1,x"])
     assert "--margins" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cs.main(["evaluate", "--data", str(out), "--ground", "tiles"])
+    assert "--ground" in capsys.readouterr().err
+    with pytest.raises(SystemExit, match="the 'paper' model has no lines table"):
+        cs.misfit_baseline([out], "paper", ground="lines")

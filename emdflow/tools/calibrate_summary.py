@@ -1,4 +1,4 @@
-"""Calibrate the likelihood table of :func:`emdflow.summarize` from synthetic flights.
+"""Calibrate the likelihood tables of :func:`emdflow.summarize` from synthetic flights.
 
 The summary (``emdflow/summary.py``) models every detection as drawn from
 ``P(code | c, ψ, β)``: the probability that the winning signed channel of an axis
@@ -523,10 +523,13 @@ def misfit_baseline(data, model: str, frames: int = MISFIT_FRAMES, seed: int = M
     from emdflow import summarize
     from emdflow.field import FlowField
     from emdflow.reference import STAT_FIRST_CHANGED
-    from emdflow.summary import SummaryOptions
+    from emdflow.summary import SummaryOptions, calibration_for
 
-    options = SummaryOptions(ground=ground)
     params = model_params(model)
+    if calibration_for(params, ground) is None:
+        # summarize() would read another table and the baseline would be that table's
+        raise SystemExit(f"misfit baseline: the {model!r} model has no {ground} table to measure")
+    options = SummaryOptions(ground=ground)
     sizes = []
     for path in data:
         with np.load(path) as d:
@@ -761,15 +764,18 @@ def margin_sweep(paths, margins, out=print):
     for path in paths:
         with np.load(path) as z:
             data = {k: z[k] for k in z.files}
+        if "texture" not in data:
+            raise SystemExit(f"{path}: no texture names (an older evaluate --save): render it again")
         h, w = (int(x) for x in data["shape"])
         codes = np.zeros((h, w), np.int8)
-        params = EngineParams(**MODELS[str(data["model"])])
+        model = str(data["model"]) if "model" in data else "paper"
+        params = EngineParams(**MODELS[model])
         fields = [FlowField(codes, codes, st, hi, params, int(data["frame_index"]))
                   for hi, st in zip(data["hist"], data["stats"])]
         flows = np.asarray(data["flow"], np.float64)
         textures = np.asarray(data["texture"])
         names = list(dict.fromkeys(str(t) for t in textures))
-        out(f"{path}: {len(fields)} frames, {data['model']} model; per texture: relative error "
+        out(f"{path}: {len(fields)} frames, {model} model; per texture: relative error "
             "(share read with the line table)")
         out("  margin | all speeds | " + " | ".join(names))
         for margin in [None, *margins]:
@@ -905,7 +911,8 @@ def main(argv=None):
     f.add_argument("data", nargs="+")
     f.add_argument("--write", action="store_true",
                    help="write emdflow/summary_calibration.npz (paper) or "
-                        "emdflow/summary_calibration_<model>.npz")
+                        "emdflow/summary_calibration_<model>.npz (with --ground lines: "
+                        "..._lines.npz)")
     f.add_argument("--model", default="paper", choices=tuple(MODELS))
     f.add_argument("--ground", default="edges", choices=GROUNDS,
                    help="the kind of ground the flights flew over: edges (the main table) or "
