@@ -41,7 +41,9 @@ and vertical ones by ``y`` into 16 bins), so they cost the same at any frame siz
   former line fit 34 %), 20.3 % (54.7 %) with a 2.2 px/frame translation; the paper's model
   39 % (96 %) and 27 % (50 %) — it sees nothing below ~0.5 px/frame, so a zoom of
   0.2 %/frame (0.3 px/frame at the frame's edge) gives no cue and 0.5 %/frame reads
-  0.5–0.75×. Periodic textures (brick) alias on one axis and read 0.4–0.7×. A channel
+  0.5–0.75×. Brick reads 0.4–0.75×, as do random grids whose long straight edges lie along
+the detector axes, drawn as thin lines or as step edges (the same grids turned by 30°
+read 0.89–1.11×; README, under "The summary"). A channel
   set without a table falls back to the line fit. The divergence of the flow is ``2r``;
 * **time to contact** ``1/r`` frames (``1/(r·fps)`` seconds) when approaching (``r > 0``);
 * **balance** left/right and top/bottom, ``(S_b − S_a) / (S_b + S_a)`` of the mean image

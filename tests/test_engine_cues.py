@@ -144,3 +144,19 @@ def test_zoom_eval_tool_reports_every_cell(tmp_path):
     assert back["channels"] == ((1, 1),) and back["threshold_mode"] == "fixed" and back["flights"] == 1
     assert np.array_equal(back["response"], table["response"]) and "x: channels" in zoom_eval.format_calibration(
         {"x": table})
+
+
+def test_zoom_eval_flies_over_any_known_ground(tmp_path):
+    """``zoom_eval --textures`` takes every ground the renderer knows (synthetic grids and
+    fractals, image files) besides scikit-image's data files, and names an unknown one."""
+    import cv2
+
+    from emdflow.tools import zoom_eval
+
+    image = tmp_path / "ground.png"
+    cv2.imwrite(str(image), (np.random.default_rng(1).random((64, 64)) * 255).astype(np.uint8))
+    for name in ("lines-5-30", "cells-1", "fractal-1.0-1", "gravel", str(image)):
+        assert zoom_eval.texture_source(name) == name
+    assert zoom_eval.texture_source("ihc").endswith("ihc.png")
+    with pytest.raises(ValueError, match="no-such-ground"):
+        zoom_eval.texture_source("no-such-ground")

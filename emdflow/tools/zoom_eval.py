@@ -67,12 +67,17 @@ DEFAULT_TRANSLATIONS = ((0.0, 0.0), (2.0, -1.0))
 
 
 def texture_source(name: str) -> str:
-    """A texture for :class:`~emdflow.synthetic.CameraFlight`: a bundled name, else the
-    file of that name in scikit-image's data folder (e.g. ``ihc`` → ``.../ihc.png``)."""
-    from emdflow.synthetic import TEXTURES
+    """A texture for :class:`~emdflow.synthetic.CameraFlight`: any name it knows (a bundled
+    photograph, an image file, a synthetic ``fractal-…``, ``lines-…`` or ``cells-…``
+    ground), else the file of that name in scikit-image's data folder (e.g. ``ihc`` →
+    ``.../ihc.png``)."""
+    from emdflow.synthetic import load_texture
 
-    if name in TEXTURES or Path(name).is_file():
+    try:
+        load_texture(name)
         return name
+    except ValueError:
+        pass
     import skimage
 
     folder = Path(skimage.__file__).parent / "data"
