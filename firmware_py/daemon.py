@@ -789,6 +789,8 @@ class Daemon:
         lat50, lat99 = _percentiles(self.latencies_us if iv is None else self._interval_latencies)
         s = self.stats.last_summary
         flow = f"flow {s.flow_x:+.2f},{s.flow_y:+.2f} px/frame q {s.quality}" if s else "flow -"
+        if s and s.line_ground:  # read with the summary's line-ground table (paving, tiles)
+            flow += " (line ground)"
         c = looming_cues(self.stats.last_field) if self.stats.last_field is not None else None
         if c is not None and c.detections:
             frame_s = self._frame_interval_s()

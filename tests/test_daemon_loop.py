@@ -164,3 +164,21 @@ def test_source_keeper_backoff_grows_while_source_is_missing(tmp_path, caplog):
     frame = keeper.read()
     assert frame is not None and frame.index == 0 and not keeper.blind
     keeper.close()
+
+
+def test_the_status_line_says_when_the_ground_reads_as_thin_lines():
+    """The extended model over a grid of thin lines (paving, tiles): the summary reads it
+    with its line-ground table, and the status line says so; over gravel it does not."""
+    from firmware_py.config import Config
+
+    from daemon_util import run_daemon
+
+    said = {}
+    for texture in ("lines-5-30", "gravel"):
+        config = Config()
+        config.set("source", "uri", f"synthetic:texture={texture},u=-6.6,v=-2.4")
+        config.set("engine", "model", "extended")
+        code, daemon, _ = run_daemon(config, frames=24)
+        assert code == 0 and daemon.stats.last_summary.quality > 0
+        said[texture] = "(line ground)" in daemon.status_text(daemon.stats.interval(), 1.0)
+    assert said == {"lines-5-30": True, "gravel": False}
