@@ -189,10 +189,11 @@ the error 0.41–0.45 across the five sets (without the misfit term 6.1 % (14.8 
 15 %, 31 % and 0.32 on the random set). Cost with the edge table alone ≈ 0.55–0.6 ms per
 call back to back at 640×480 (plus ~0.025 ms for the deviance) and 0.8–1.2 ms right after
 each frame's update, when the engine has evicted the table from the caches (``emdflow
-bench --stages --model extended``); the line-ground table's second fit doubles it (0.97
-against 0.53 ms back to back at 320×240 and at 640×480, ``calibrate_summary evaluate
---data F --ground auto|edges``; 1.25 ms after each update, measured on an Intel Xeon host
-where the figures above were on an AMD EPYC one): the
+bench --stages --model extended``); the line-ground table's second fit, which reuses the
+first one's gathering of the counts, makes it 1.6–1.7× (0.85–0.90 against 0.52 ms back to
+back at 320×240 and 640×480, ``calibrate_summary evaluate --data F --ground auto|edges``;
+1.05 ms after each update, measured on an Intel Xeon host where the figures above were on
+an AMD EPYC one): the
 curves of up to four classes per row, ~2 000 nonzero counts, each a 240-entry table row,
 summed by one compiled sparse product (numpy's padded batched product took ~0.85 ms back
 to back). Without the classes
@@ -575,6 +576,9 @@ class _LikelihoodModel:
         self.hist_index = np.stack([index, index[:, :, codes ^ 1]], axis=1).reshape(n_rows, 2, -1)
         self.n_cat = n_cat
         self.hist_bins = n_classes * n_bins
+        # tables with equal layouts gather a histogram's counts the same way (the line-
+        # ground table and the edge table of one channel set): a frame's gathering is shared
+        self.layout = (n_classes, n_cat, rows.tobytes())
         # per-direction geometry of the base rows, padded by _PAD directions on both sides
         # (index d + _PAD is direction d, for d in -_PAD .. _DIRECTIONS + _PAD)
         ang = (np.arange(_DIRECTIONS + 2 * _PAD) - _PAD) * _DIR_STEP
@@ -738,15 +742,25 @@ def _model_of(field: FlowField, opts: SummaryOptions, ground: str = "edges"):
     return by_class if by_class is not None and by_class.hist_bins == field.histogram.shape[-1] else folded
 
 
-def _row_curves(model: _LikelihoodModel, hist: np.ndarray, exponent: float):
+def _row_curves(model: _LikelihoodModel, hist: np.ndarray, exponent: float, gathered=None):
     """Log-likelihood curves of one frame's base rows with detections, shape
     ((active rows · 2 + sign) · β nodes, U) (sign 0: c > 0, 1: c < 0), with those base
-    rows, the detection count and the number of active (row, gradient class) rows.
+    rows, the detection count, the number of active (row, gradient class) rows, the
+    saturated model and what was gathered from ``hist`` for a table with gradient classes
+    (None without): passed back as ``gathered`` with another table of the same
+    :attr:`_LikelihoodModel.layout` and the same histogram and exponent, it saves gathering
+    the counts again (the curves come out the same bit for bit).
 
     With ``exponent`` < 1 a row of ``n`` detections weighs ``n ** exponent`` (its counts
     are scaled by ``n ** (exponent − 1)``): neighbouring detections are not independent.
     The gradient classes of one base row share its geometry, so their curves add up. Only
     the nonzero counts are gathered (a few hundred of the table's rows per frame)."""
+    if gathered is not None and gathered[0] == model.layout:
+        _, count, active, fit, table_rows, vals, group_sizes, base = gathered
+        curves = (_weighted_row_sums(model.logp, table_rows, vals, group_sizes) if base.size
+                  else np.zeros((0, model.logp.shape[1]), np.float32))
+        return (_frame_of_rows(model, curves.reshape(-1, model.n_u), base), count, active, fit,
+                gathered)
     C, n_cat = model.classes, model.n_cat
     h = hist.ravel().take(model.hist_index)  # (R, 2, classes · codes)
     n_row = np.add.reduce(h[:, 0, :].reshape(-1, C, n_cat), axis=2).ravel()  # (R · C,)
@@ -761,12 +775,13 @@ def _row_curves(model: _LikelihoodModel, hist: np.ndarray, exponent: float):
             w *= row_weight.astype(np.float32)[:, None, None]
         curves = np.matmul(w, model.logp[:-1].reshape(model.n_base, n_cat, -1))
         frame = (curves.reshape(-1, model.n_u), None, model.first_all, model.jrow_all)
-        return frame, count, active, fit
+        return frame, count, active, fit, None
     # (np.flatnonzero of a boolean mask: ~3x faster than of the int64 counts)
     flat = np.flatnonzero(h != 0)  # sorted by (base row, sign, class, code)
     if flat.size == 0:
-        empty = _frame_of_rows(model, np.zeros((0, model.n_u), np.float32), np.zeros(0, np.intp))
-        return empty, count, active, fit
+        base = np.zeros(0, np.intp)
+        empty = _frame_of_rows(model, np.zeros((0, model.n_u), np.float32), base)
+        return empty, count, active, fit, (model.layout, count, active, fit, None, None, None, base)
     per_sign = C * n_cat
     key, within = np.divmod(flat, per_sign)  # key = base row · 2 + sign
     raw = h.ravel().take(flat)
@@ -781,8 +796,10 @@ def _row_curves(model: _LikelihoodModel, hist: np.ndarray, exponent: float):
     # one output row per (active base row, sign), both signs of a row present
     per_key = np.bincount(key, minlength=2 * model.n_base).reshape(-1, 2)
     base = np.flatnonzero(per_key.any(axis=1))
-    return _frame_of_rows(model, _weighted_row_sums(model.logp, table_rows, vals, per_key[base].ravel())
-                          .reshape(-1, model.n_u), base), count, active, fit
+    group_sizes = per_key[base].ravel()
+    gathered = (model.layout, count, active, fit, table_rows, vals, group_sizes, base)
+    return _frame_of_rows(model, _weighted_row_sums(model.logp, table_rows, vals, group_sizes)
+                          .reshape(-1, model.n_u), base), count, active, fit, gathered
 
 
 class _Saturated:
@@ -905,19 +922,20 @@ def _polar(model: _LikelihoodModel, U: float, V: float) -> tuple[float, int]:
 
 
 def _fitted_curves(model: _LikelihoodModel, full: np.ndarray, summed: np.ndarray | None,
-                   opts: SummaryOptions):
-    """A frame's likelihood curves and saturated model (:func:`_row_curves`) when it gets a
-    likelihood fit — at least two active rows and ``opts.min_detections`` detections —
-    else None. ``full`` is the histogram, ``summed`` the same with its gradient classes
-    added up (:func:`_classes_summed`; None: computed here when the table needs it)."""
+                   opts: SummaryOptions, gathered=None):
+    """A frame's likelihood curves, saturated model and gathered counts
+    (:func:`_row_curves`) when it gets a likelihood fit — at least two active rows and
+    ``opts.min_detections`` detections — else None. ``full`` is the histogram, ``summed``
+    the same with its gradient classes added up (:func:`_classes_summed`; None: computed
+    here when the table needs it); ``gathered``: an earlier call's, on the same frame."""
     if model.classes > 1:
         hist = full
     else:
         hist = _classes_summed(full) if summed is None else summed
-    curves, count, active, saturated = _row_curves(model, hist, opts.row_exponent)
+    curves, count, active, saturated, gathered = _row_curves(model, hist, opts.row_exponent, gathered)
     if active < 2 or count < opts.min_detections:
         return None
-    return curves, saturated
+    return curves, saturated, gathered
 
 
 def _likelihood_fit(model: _LikelihoodModel, curves, U0: float, V0: float):
@@ -1053,7 +1071,7 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
     deviance = 0.0
     fitted = _fitted_curves(model, full, hist, opts) if model is not None else None
     if fitted is not None:
-        curves, saturated = fitted
+        curves, saturated, gathered = fitted
         U1, V1, sig_s, sig_a, loglik = _likelihood_fit(model, curves, U, V)
         line_model = _model_of(field, opts, "lines") if opts.ground == "auto" else None
         # without gradient-strength classes the line table cannot tell lines from edges
@@ -1061,11 +1079,11 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
         if line_model is not None and line_model.classes > 1:
             # the same histogram under the line-ground table, from the same guess; the
             # saturated model depends on the counts alone, so the deviances compare
-            line_fitted = _fitted_curves(line_model, full, hist, opts)
+            line_fitted = _fitted_curves(line_model, full, hist, opts, gathered)
             if line_fitted is not None:
                 line_fit = _likelihood_fit(line_model, line_fitted[0], U, V)
                 if line_fit[4] > loglik + opts.line_ground_margin:
-                    model, (curves, saturated) = line_model, line_fitted
+                    model, (curves, saturated, _) = line_model, line_fitted
                     U1, V1, sig_s, sig_a, loglik = line_fit
                     on_lines = True
         speed = math.hypot(U1, V1)

@@ -345,6 +345,32 @@ def test_the_summary_reads_line_ground_with_its_table(flow):
     assert not summarize(paper).line_ground
 
 
+def test_the_line_fit_reuses_the_edge_fits_gathering_bit_for_bit():
+    """The second fit takes the counts the first one gathered from the histogram (same
+    layout): its curves are the ones a fresh gathering gives, bit for bit; a table of
+    another layout (the paper's) gathers afresh."""
+    from emdflow import summary as S
+
+    hist = model_histogram((5.0, -2.0), seed=4, table=calibration_for(EXT_PARAMS, "lines"), classes=True,
+                           gradient=8.0)
+    field = _field(hist, stats=_stats(EXT_PARAMS, gradient=8.0), params=EXT_PARAMS, frame_index=20)
+    opts = SummaryOptions()
+    edges, lines = S._model_of(field, opts), S._model_of(field, opts, "lines")
+    assert edges.layout == lines.layout and edges is not lines
+    first = S._fitted_curves(edges, field.histogram, None, opts)
+    fresh = S._fitted_curves(lines, field.histogram, None, opts)
+    reused = S._fitted_curves(lines, field.histogram, None, opts, first[2])
+    assert reused[2] is first[2] and reused[1] is first[1]
+    for a, b in zip(fresh[0], reused[0]):
+        assert np.array_equal(a, b)
+    paper_field = _field(model_histogram((5.0, -2.0), seed=4))
+    paper = S._model_of(paper_field, opts)
+    assert paper.layout != edges.layout
+    alone = S._fitted_curves(paper, paper_field.histogram, None, opts)
+    handed = S._fitted_curves(paper, paper_field.histogram, None, opts, first[2])
+    assert np.array_equal(alone[0][0], handed[0][0]) and handed[2] is None
+
+
 @pytest.mark.parametrize("texture,speed,angle_deg,picked", [
     ("lines-5-30", 7.0, 200.0, True), ("lines-6-10", 11.0, 100.0, True),
     ("gravel", 9.0, 20.0, False), ("camera", 3.0, 200.0, False),
