@@ -189,9 +189,10 @@ class EngineParams:
         direction error falls with the number of sampled detections and the engine's
         time grows with it: at 320×240, every row (1) instead of every 4th takes the paper
         model's median direction error on random flights from 2.37° to 2.06° and the
-        extended model's from 1.80° to 1.65°, for ~0.35 ms more per frame (README,
-        "Evidence density"). The detections themselves (``u``, ``v``) do not change, nor
-        does the calibration table, which does not depend on the sampling.
+        extended model's from 1.80° to 1.65° with its edge table alone (1.92° to 1.73°
+        with its line-ground table too), for ~0.35 ms more per frame (README, "Evidence
+        density"). The detections themselves (``u``, ``v``) do not change, nor do the
+        calibration tables, which do not depend on the sampling.
     summary_evidence : bool
         Compute the summary's evidence next to the detector (default True): the
         orientation and position histograms that :func:`emdflow.summarize` and
