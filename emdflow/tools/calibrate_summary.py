@@ -461,15 +461,14 @@ def fit_main(data, write, model="paper", ground="edges"):
         del hist, flow, g
     Ps, tots, P_all = [], [], []
     filled_classes = [c for c, Nc in enumerate(counts) if Nc is not None]
-    for c in range(len(counts)):
+    for c, Nc in enumerate(counts):
         print(f"contrast class {c}: {frames[c]} frames")
-        if counts[c] is None and ground != "edges" and filled_classes:
+        if Nc is None and ground != "edges" and filled_classes:
             # a ground table may lack a contrast class (no thin-line ground as rough as
             # gravel): the nearest class with flights stands in for it
             near = min(filled_classes, key=lambda k: abs(k - c))
             print(f"  no frames: contrast class {near}'s distributions stand in")
-            counts[c] = counts[near]
-    for c, Nc in enumerate(counts):
+            Nc = counts[near]
         if Nc is None:
             raise SystemExit(f"no calibration frames in contrast class {c} (edges {edges})")
         P, tot, P_all_c = class_tables(Nc)
@@ -669,15 +668,8 @@ def score(data, options=None, out=print):
     they store ``texture``) and the mean time per :func:`summarize` call. Returns
     ``(errors (n, 2), quality (n,))``."""
     from emdflow import summarize
-    from emdflow.field import FlowField
-    from emdflow.params import EngineParams
 
-    h, w = (int(x) for x in data["shape"])
-    codes = np.zeros((h, w), np.int8)
-    params = EngineParams(**MODELS[str(data["model"]) if "model" in data else "paper"])
-    flows = np.asarray(data["flow"], np.float64)
-    fields = [FlowField(codes, codes, st, hi, params, int(data["frame_index"]))
-              for hi, st in zip(data["hist"], data["stats"])]
+    fields, flows = _stored_fields(data)
     summarize(fields[0], options=options)  # builds the cached tables
     t0 = time.perf_counter()
     sums = [summarize(f, options=options) for f in fields]
@@ -717,38 +709,54 @@ def score(data, options=None, out=print):
     return err, qual
 
 
-def _print_texture_speed(sums, flows, textures, out=print):
-    """Per speed and texture, the median of the speed the summary reads over the true speed
-    (a quality-0 frame reads 0): whether a texture reads fast or slow, which the error
-    medians do not say."""
+def _stored_fields(data):
+    """The frames of stored flights (``evaluate --save``: histograms, statistics, their
+    model and frame size) as :class:`FlowField` objects for :func:`summarize`, and their
+    true flows (n, 2)."""
+    from emdflow.field import FlowField
+    from emdflow.params import EngineParams
+
+    h, w = (int(x) for x in data["shape"])
+    codes = np.zeros((h, w), np.int8)
+    params = EngineParams(**MODELS[str(data["model"]) if "model" in data else "paper"])
+    fields = [FlowField(codes, codes, st, hi, params, int(data["frame_index"]))
+              for hi, st in zip(data["hist"], data["stats"])]
+    return fields, np.asarray(data["flow"], np.float64)
+
+
+def _print_by_texture_and_speed(title, values, reduce, cell_format, flows, textures, out=print):
+    """A table of ``reduce(values)`` over the frames of each speed (rows) and texture
+    (columns), nan where a texture has no frame at a speed."""
     flows = np.asarray(flows, np.float64)
     speed = np.hypot(flows[:, 0], flows[:, 1])
-    read = np.array([s.speed if s.quality > 0 else 0.0 for s in sums]) / np.maximum(speed, 1e-12)
     names = list(dict.fromkeys(str(t) for t in textures))
-    out("  median speed read / true, by texture: speed | " + " | ".join(f"{n:>7s}" for n in names))
+    out(f"  {title}: speed | " + " | ".join(f"{n:>7s}" for n in names))
     for sp in np.unique(np.round(speed, 6)):
         at = np.isclose(speed, sp)
         cells = []
         for n in names:
             m = at & (textures == n)
-            cells.append(np.median(read[m]) if m.any() else math.nan)
-        out(f"    {sp:5.4g} | " + " | ".join(f"{c:7.3f}" for c in cells))
+            cells.append(reduce(values[m]) if m.any() else math.nan)
+        out(f"    {sp:5.4g} | " + " | ".join(cell_format.format(c) for c in cells))
+
+
+def _print_texture_speed(sums, flows, textures, out=print):
+    """Per speed and texture, the median of the speed the summary reads over the true speed
+    (a quality-0 frame reads 0): whether a texture reads fast or slow, which the error
+    medians do not say."""
+    speed = np.hypot(*np.asarray(flows, np.float64).T)
+    read = np.array([s.speed if s.quality > 0 else 0.0 for s in sums]) / np.maximum(speed, 1e-12)
+    _print_by_texture_and_speed("median speed read / true, by texture", read, np.median, "{:7.3f}",
+                                flows, textures, out)
 
 
 def _print_line_share(sums, flows, textures, out=print):
     """Per speed and texture, the share of frames whose answer is the line-ground table's
     (:attr:`FlowSummary.line_ground`); nothing when no frame's is."""
     on_lines = np.array([s.line_ground for s in sums])
-    if not on_lines.any():
-        return
-    speed = np.hypot(*np.asarray(flows, np.float64).T)
-    names = list(dict.fromkeys(str(t) for t in textures))
-    out("  share of frames read with the line-ground table: speed | "
-        + " | ".join(f"{n:>7s}" for n in names))
-    for sp in np.unique(np.round(speed, 6)):
-        at = np.isclose(speed, sp)
-        cells = [np.mean(on_lines[at & (textures == n)]) * 100 for n in names]
-        out(f"    {sp:5.4g} | " + " | ".join(f"{c:5.0f} %" for c in cells))
+    if on_lines.any():
+        _print_by_texture_and_speed("share of frames read with the line-ground table",
+                                    on_lines * 100.0, np.mean, "{:5.0f} %", flows, textures, out)
 
 
 def margin_sweep(paths, margins, out=print):
@@ -757,8 +765,6 @@ def margin_sweep(paths, margins, out=print):
     of all frames and each texture's median relative error and share of frames read with
     the line-ground table (``ground="edges"``: the edge table alone, for reference)."""
     from emdflow import summarize
-    from emdflow.field import FlowField
-    from emdflow.params import EngineParams
     from emdflow.summary import SummaryOptions
 
     for path in paths:
@@ -766,13 +772,8 @@ def margin_sweep(paths, margins, out=print):
             data = {k: z[k] for k in z.files}
         if "texture" not in data:
             raise SystemExit(f"{path}: no texture names (an older evaluate --save): render it again")
-        h, w = (int(x) for x in data["shape"])
-        codes = np.zeros((h, w), np.int8)
         model = str(data["model"]) if "model" in data else "paper"
-        params = EngineParams(**MODELS[model])
-        fields = [FlowField(codes, codes, st, hi, params, int(data["frame_index"]))
-                  for hi, st in zip(data["hist"], data["stats"])]
-        flows = np.asarray(data["flow"], np.float64)
+        fields, flows = _stored_fields(data)
         textures = np.asarray(data["texture"])
         names = list(dict.fromkeys(str(t) for t in textures))
         out(f"{path}: {len(fields)} frames, {model} model; per texture: relative error "
