@@ -41,7 +41,8 @@ _MAX_VIEW_TEXTURES = 256
 #: Names of bundled photographs usable as ground textures (scikit-image's ``data`` module).
 #: Besides these (and image files), ``"immunohistochemistry"`` (a stained tissue section:
 #: a fine, irregular texture), synthetic ``"fractal-<beta>-<seed>[-<sigma>]"`` textures
-#: (:func:`fractal_texture`) and the pair ``"lines-<seed>[-<angle>]"`` / ``"cells-<seed>[-<angle>]"``
+#: (:func:`fractal_texture`), ``"grain-<period>-<seed>[-<sigma>]"`` (:func:`grain_texture`)
+#: and the pair ``"lines-<seed>[-<angle>]"`` / ``"cells-<seed>[-<angle>]"``
 #: (:func:`grid_texture`: thin lines, or step edges, on one layout) are known.
 TEXTURES = ("gravel", "grass", "brick", "camera", "moon", "coffee", "astronaut", "rocket")
 _EXTRA_PHOTOGRAPHS = ("immunohistochemistry",)
@@ -51,8 +52,10 @@ def fractal_texture(beta: float, seed: int, size: int = 1024, sigma: float = 40.
     """A random texture with a ``1 / f**beta`` amplitude spectrum (uint8, mean 128, standard
     deviation ``sigma`` gray levels before clipping to 0..255).
 
-    Natural ground (gravel, grass, soil) is close to such a spectrum with ``beta`` ≈ 1–1.5;
-    the bundled photographs used for calibration are smoother. Deterministic for a seed.
+    With ``beta`` below the bundled calibration photographs' (their amplitude spectra
+    fall about as ``1 / f**1.2``–``1 / f**1.4``) it is rougher than they are, but it is
+    not granular: gravel's and grass's photographs have a flat spectrum up to a grain size
+    and a steep one beyond (:func:`grain_texture`). Deterministic for a seed.
     With ``sigma`` ≈ 60 the frame's mean gradient is that of gravel or grass (~17–19 gray
     levels), which the summary's calibration needs to see."""
     rng = np.random.default_rng(int(seed))
@@ -61,6 +64,35 @@ def fractal_texture(beta: float, seed: int, size: int = 1024, sigma: float = 40.
     f = np.hypot(fx, fy)
     f[0, 0] = 1.0
     spectrum = (rng.normal(size=f.shape) + 1j * rng.normal(size=f.shape)) / f ** float(beta)
+    spectrum[0, 0] = 0.0
+    image = np.fft.irfft2(spectrum, s=(size, size))
+    image = (image - image.mean()) / image.std() * float(sigma) + 128.0
+    return np.clip(image, 0, 255).astype(np.uint8)
+
+
+#: Power-spectrum exponent of :func:`grain_texture` above its grain frequency (between
+#: the steep falls of gravel's and grass's photographs).
+GRAIN_EXPONENT = 3.5
+
+
+def grain_texture(period: float, seed: int, size: int = 1024, sigma: float = 40.0) -> np.ndarray:
+    """A random *granular* texture (uint8, mean 128, standard deviation ``sigma`` gray levels
+    before clipping to 0..255): a power spectrum flat below the grain frequency ``1 /
+    period`` (cycles/px) and falling as ``f**-GRAIN_EXPONENT`` above it, like a ground of
+    pebbles, sand or grass blades ``period`` px across. Deterministic for a seed.
+
+    Gravel and grass are granular, not fractal: their photographs' spectra are nearly flat
+    up to a grain size and steep beyond, where a 1/f texture keeps much of its power at
+    low frequencies. Granular ground decorrelates under a sideways shift much sooner
+    (README, "Fast oblique flight over rough ground")."""
+    period = _finite("period", period)
+    if period <= 0.0:
+        raise ValueError(f"period={period!r}: must be > 0 px")
+    rng = np.random.default_rng(int(seed))
+    fy = np.fft.fftfreq(size)[:, None]
+    fx = np.fft.rfftfreq(size)[None, :]
+    amplitude = (1.0 + (np.hypot(fx, fy) * period) ** 2) ** (-GRAIN_EXPONENT / 4.0)
+    spectrum = (rng.normal(size=amplitude.shape) + 1j * rng.normal(size=amplitude.shape)) * amplitude
     spectrum[0, 0] = 0.0
     image = np.fft.irfft2(spectrum, s=(size, size))
     image = (image - image.mean()) / image.std() * float(sigma) + 128.0
@@ -136,6 +168,15 @@ def _load_texture_cached(name: str) -> np.ndarray:
         except ValueError:
             raise ValueError(f"texture {name!r}: expected fractal-<beta>-<seed>[-<sigma>], "
                              "e.g. fractal-1.0-1 or fractal-0.8-3-60") from None
+    elif name.startswith("grain-") and not Path(name).is_file():
+        try:  # grain-<period>-<seed>[-<sigma>]
+            _, period, seed, *sigma = name.split("-")
+            if len(sigma) > 1:
+                raise ValueError(name)
+            image = grain_texture(float(period), int(seed), sigma=float(sigma[0]) if sigma else 40.0)
+        except ValueError:
+            raise ValueError(f"texture {name!r}: expected grain-<period px>-<seed>[-<sigma>], "
+                             "e.g. grain-12-1 or grain-8-3-50") from None
     elif name.startswith(("lines-", "cells-")) and not Path(name).is_file():
         kind, _, rest = name.partition("-")
         fields = rest.split("-", 1)  # the angle may carry its own minus sign

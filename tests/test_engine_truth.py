@@ -288,6 +288,71 @@ def test_stochastic_calibration_textures():
             load_texture(bad)
 
 
+def test_granular_textures():
+    """grain-<period>-<seed>[-<sigma>]: a spectrum flat below the grain frequency and steep
+    above it (gravel and grass are granular, not 1/f), deterministic per seed, mean 128 and
+    σ 40 (or as named); a malformed name or period says what is expected."""
+    from emdflow.synthetic import GRAIN_EXPONENT, grain_texture, load_texture
+
+    a = load_texture("grain-12-1")
+    assert a.shape == (1024, 1024) and np.array_equal(a, grain_texture(12, 1).astype(np.float32))
+    assert not np.array_equal(a, load_texture("grain-12-2"))
+    assert abs(a.mean() - 128) < 2 and abs(a.std() - 40) < 2
+    assert abs(load_texture("grain-12-1-55").std() - 55) < 3
+    # radially averaged power: flat well below 1/period, falling as f**-GRAIN_EXPONENT above
+    power = np.abs(np.fft.fft2(a - a.mean())) ** 2
+    f = np.hypot(np.fft.fftfreq(1024)[:, None], np.fft.fftfreq(1024)[None, :])
+
+    def band(lo, hi):
+        return power[(f >= lo) & (f < hi)].mean()
+
+    assert 0.6 < band(0.004, 0.008) / band(0.008, 0.016) < 1.6  # below the grain: flat
+    fall = math.log(band(0.16, 0.2) / band(0.32, 0.4)) / math.log(2.0)
+    assert fall == pytest.approx(GRAIN_EXPONENT, abs=0.4)
+    # a finer grain is rougher
+    roughness = [np.abs(np.diff(load_texture(f"grain-{p}-1"), axis=1)).mean() for p in (4, 12, 30)]
+    assert roughness[0] > 1.4 * roughness[1] > 1.4 * 1.4 * roughness[2]
+    for bad in ("grain-x-1", "grain-12-1-40-2", "grain-0-1", "grain-inf-1"):
+        with pytest.raises(ValueError, match=r"grain-<period px>-<seed>\[-<sigma>\]"):
+            load_texture(bad)
+    with pytest.raises(ValueError, match="period=0.0: must be > 0"):
+        grain_texture(0.0, 1)
+
+
+def test_fast_oblique_flight_drowns_the_minor_axis_over_granular_ground():
+    """README, "Fast oblique flight over rough ground": with 10 px/frame across it, the
+    vertical detectors lose most of their detections over gravel (the ground slides
+    sideways under their receptors) and a third or more of those left have the wrong
+    sign, where long edges (the camera photograph) keep theirs; moving along the axis,
+    both read the 4 px/frame in the two channels that bracket it."""
+    from emdflow.tools import cross_motion
+
+    assert cross_motion.bracketing_channels((0.25, 0.5, 1, 3, 5, 7), 4) == (3, 4)
+    assert cross_motion.bracketing_channels((0.25, 0.5, 1, 3, 5, 7), 3) == (3,)
+    assert cross_motion.bracketing_channels((0.25, 0.5, 1, 3, 5, 7), 20) == (5,)
+    rows = cross_motion.evaluate(model="extended", textures=("gravel", "camera"), majors=(0, 10),
+                                 flights=2, frames=3)
+    (gravel_along, gravel_across), (camera_along, camera_across) = rows[:2], rows[2:]
+    for along in (gravel_along, camera_along):
+        assert along["right"] > 0.8 and along["wrong_sign"] < 0.05
+        assert along["read_v"] == pytest.approx(4.0, rel=0.1) and abs(along["read_u"]) < 0.4
+    assert gravel_across["detections"] < 0.2 * gravel_along["detections"]
+    assert camera_across["detections"] > 0.3 * camera_along["detections"]
+    assert gravel_across["wrong_sign"] > 0.3 and camera_across["wrong_sign"] < gravel_across["wrong_sign"]
+    # over the camera photograph the direction still holds
+    assert camera_across["direction_error_deg"] < 4.0
+    assert "| gravel | (10, 4) |" in cross_motion.format_report(rows)
+
+
+def test_cross_motion_command_refuses_bad_options(capsys):
+    from emdflow.tools import cross_motion
+
+    assert cross_motion.main(["--minor", "-1", "--textures", "gravel"]) == 2
+    assert "minor=-1.0: must be > 0" in capsys.readouterr().err
+    assert cross_motion.main(["--majors", "-3", "--textures", "gravel"]) == 2
+    assert "must be >= 0" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("speed", [1, 3, 5])
 def test_thin_lines_need_the_prefilter(speed):
     """The spec's motion templates come from edges (§2): a line thinner than a receptor

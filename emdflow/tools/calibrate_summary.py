@@ -664,8 +664,9 @@ def score(data, options=None, out=print):
     """summarize() every stored frame; prints median relative / direction error per speed
     (quality-0 frames count as 100 % / 180°), coverage (share of frames with quality > 0),
     a quality-band table, how much of the error each flight keeps in all its frames (when
-    the data store ``flight_frames``), each texture's median speed reading per speed (when
-    they store ``texture``) and the mean time per :func:`summarize` call. Returns
+    the data store ``flight_frames``), each texture's median speed reading and direction
+    error per speed (when they store ``texture``) and the mean time per :func:`summarize`
+    call. Returns
     ``(errors (n, 2), quality (n,))``."""
     from emdflow import summarize
 
@@ -697,6 +698,7 @@ def score(data, options=None, out=print):
         _print_flight_bias(sums, flows, int(data["flight_frames"]), out)
     if "texture" in data:
         _print_texture_speed(sums, flows, np.asarray(data["texture"]), out)
+        _print_texture_direction(err, flows, np.asarray(data["texture"]), out)
         _print_line_share(sums, flows, np.asarray(data["texture"]), out)
     _print_search_check(fields, sums, flows, err, options, out)
     rated = qual > 0
@@ -748,6 +750,13 @@ def _print_texture_speed(sums, flows, textures, out=print):
     read = np.array([s.speed if s.quality > 0 else 0.0 for s in sums]) / np.maximum(speed, 1e-12)
     _print_by_texture_and_speed("median speed read / true, by texture", read, np.median, "{:7.3f}",
                                 flows, textures, out)
+
+
+def _print_texture_direction(err, flows, textures, out=print):
+    """Per speed and texture, the median direction error (degrees; a quality-0 frame
+    counts as 180°): which grounds the direction error of a speed comes from."""
+    _print_by_texture_and_speed("median direction error (deg), by texture", np.asarray(err)[:, 1],
+                                np.median, "{:7.2f}", flows, textures, out)
 
 
 def _print_line_share(sums, flows, textures, out=print):
