@@ -323,8 +323,9 @@ def test_fast_oblique_flight_drowns_the_minor_axis_over_granular_ground():
     """README, "Fast oblique flight over rough ground": with 10 px/frame across it, the
     vertical detectors lose most of their detections over gravel (the ground slides
     sideways under their receptors) and a third or more of those left have the wrong
-    sign, where long edges (the camera photograph) keep theirs; moving along the axis,
-    both read the 4 px/frame in the two channels that bracket it."""
+    sign, where long edges (the camera photograph) keep theirs, and the quality falls
+    with them; moving along the axis, both read the 4 px/frame in the two channels that
+    bracket it."""
     from emdflow.tools import cross_motion
 
     assert cross_motion.bracketing_channels((0.25, 0.5, 1, 3, 5, 7), 4) == (3, 4)
@@ -339,8 +340,10 @@ def test_fast_oblique_flight_drowns_the_minor_axis_over_granular_ground():
     assert gravel_across["detections"] < 0.2 * gravel_along["detections"]
     assert camera_across["detections"] > 0.3 * camera_along["detections"]
     assert gravel_across["wrong_sign"] > 0.3 and camera_across["wrong_sign"] < gravel_across["wrong_sign"]
-    # over the camera photograph the direction still holds
+    # over the camera photograph the direction still holds, and the quality says which holds
     assert camera_across["direction_error_deg"] < 4.0
+    assert gravel_across["quality"] < 0.6 * camera_across["quality"]
+    assert gravel_across["quality"] < 0.6 * gravel_along["quality"]
     assert "| gravel | (10, 4) |" in cross_motion.format_report(rows)
 
 

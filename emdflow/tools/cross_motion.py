@@ -14,7 +14,7 @@ the vertical axis and a growing major component ``U`` on the horizontal one, ove
 and edge-like grounds. Per ground and ``U`` it prints the vertical axis's detections per
 frame, the share of them in the two channels that bracket ``V`` with its sign, the share
 with the wrong sign, what the summary reads (``U`` and ``V``, median over the frames) with
-its median direction error, and the ``V`` it reads from the horizontal (major) axis's
+its median direction error and quality, and the ``V`` it reads from the horizontal (major) axis's
 detections alone: how much of the reading the minor axis still carries::
 
     python -m emdflow.tools.cross_motion                      # extended model, ~30 s on 2 cores (OpenCL)
@@ -65,7 +65,8 @@ def evaluate(*, model: str = "extended", textures=DEFAULT_TEXTURES, minor: float
     ``noise`` gray levels. A row holds the vertical (minor) axis's detections per frame,
     the share of them in the :func:`bracketing_channels` of ``minor`` with its sign
     (``right``) and with the other sign (``wrong_sign``), the summary's median ``U``, ``V``
-    and direction error (degrees; a quality-0 frame reads flow 0) and its median ``V``
+    and direction error (degrees; a quality-0 frame reads flow 0), its median quality
+    (``quality``) and its median ``V``
     from the same frames with the vertical axis's detections taken out (``major_only_v``)."""
     import emdflow
     from emdflow.field import FlowField
@@ -91,7 +92,7 @@ def evaluate(*, model: str = "extended", textures=DEFAULT_TEXTURES, minor: float
         th, tw = load_texture(texture).shape
         for major in majors:
             counts = np.zeros(n_codes)
-            reads, errors, major_only = [], [], []
+            reads, errors, major_only, quality = [], [], [], []
             for i in range(flights):
                 # the camera is over the photograph's centre (shifted per flight) mid-flight
                 shift = FLIGHT_SPACING_PX * (i - (flights - 1) / 2.0)
@@ -107,6 +108,7 @@ def evaluate(*, model: str = "extended", textures=DEFAULT_TEXTURES, minor: float
                     s = emdflow.summarize(field)
                     u, v = (s.flow_x, s.flow_y) if s.quality > 0 else (0.0, 0.0)
                     reads.append((u, v))
+                    quality.append(s.quality)
                     hist = field.histogram.copy()
                     hist[1] = 0
                     alone = emdflow.summarize(FlowField(no_codes, no_codes, field.stats, hist, params,
@@ -122,7 +124,7 @@ def evaluate(*, model: str = "extended", textures=DEFAULT_TEXTURES, minor: float
                          "detections": float(counts.sum()) / len(errors),
                          "right": float(right) / total, "wrong_sign": float(counts[1::2].sum()) / total,
                          "read_u": float(np.median(reads[:, 0])), "read_v": float(np.median(reads[:, 1])),
-                         "direction_error_deg": float(np.median(errors)),
+                         "direction_error_deg": float(np.median(errors)), "quality": float(np.median(quality)),
                          "major_only_v": float(np.median(major_only))})
     return rows
 
@@ -130,12 +132,14 @@ def evaluate(*, model: str = "extended", textures=DEFAULT_TEXTURES, minor: float
 def format_report(rows: list[dict]) -> str:
     """The rows as a Markdown table."""
     header = ("| ground | flow (U, V) px/frame | minor-axis detections per frame | in the channels of V "
-              "| wrong sign | summary reads U | summary reads V | direction error | V from the major axis alone |")
-    lines = [header, "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+              "| wrong sign | summary reads U | summary reads V | direction error | quality "
+              "| V from the major axis alone |")
+    lines = [header, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         lines.append(f"| {r['texture']} | ({r['major']:g}, {r['minor']:g}) | {r['detections']:.0f} "
                      f"| {r['right'] * 100:.0f} % | {r['wrong_sign'] * 100:.0f} % | {r['read_u']:.2f} "
-                     f"| {r['read_v']:.2f} | {r['direction_error_deg']:.1f}° | {r['major_only_v']:.2f} |")
+                     f"| {r['read_v']:.2f} | {r['direction_error_deg']:.1f}° | {r['quality']:.0f} "
+                     f"| {r['major_only_v']:.2f} |")
     return "\n".join(lines)
 
 
