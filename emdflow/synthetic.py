@@ -58,15 +58,28 @@ def fractal_texture(beta: float, seed: int, size: int = 1024, sigma: float = 40.
     and a steep one beyond (:func:`grain_texture`). Deterministic for a seed.
     With ``sigma`` ≈ 60 the frame's mean gradient is that of gravel or grass (~17–19 gray
     levels), which the summary's calibration needs to see."""
-    rng = np.random.default_rng(int(seed))
-    fy = np.fft.fftfreq(size)[:, None]
-    fx = np.fft.rfftfreq(size)[None, :]
-    f = np.hypot(fx, fy)
+    f = _frequencies(size)
     f[0, 0] = 1.0
-    spectrum = (rng.normal(size=f.shape) + 1j * rng.normal(size=f.shape)) / f ** float(beta)
+    return _random_phase_texture(f ** -_finite("beta", beta), seed, size, sigma)
+
+
+def _frequencies(size: int) -> np.ndarray:
+    """|f| (cycles/px) of the rfft2 bins of a ``size`` × ``size`` image."""
+    return np.hypot(np.fft.rfftfreq(size)[None, :], np.fft.fftfreq(size)[:, None])
+
+
+def _random_phase_texture(amplitude: np.ndarray, seed: int, size: int, sigma: float) -> np.ndarray:
+    """Gaussian noise of amplitude spectrum ``amplitude`` (rfft2 bins; the mean is left
+    out), as uint8 of mean 128 and standard deviation ``sigma`` gray levels before clipping
+    to 0..255; deterministic for a seed."""
+    sigma = _finite("sigma", sigma)
+    if sigma <= 0.0:
+        raise ValueError(f"sigma={sigma!r}: must be > 0 gray levels")
+    rng = np.random.default_rng(int(seed))
+    spectrum = (rng.normal(size=amplitude.shape) + 1j * rng.normal(size=amplitude.shape)) * amplitude
     spectrum[0, 0] = 0.0
     image = np.fft.irfft2(spectrum, s=(size, size))
-    image = (image - image.mean()) / image.std() * float(sigma) + 128.0
+    image = (image - image.mean()) / image.std() * sigma + 128.0
     return np.clip(image, 0, 255).astype(np.uint8)
 
 
@@ -77,26 +90,21 @@ GRAIN_EXPONENT = 3.5
 
 def grain_texture(period: float, seed: int, size: int = 1024, sigma: float = 40.0) -> np.ndarray:
     """A random *granular* texture (uint8, mean 128, standard deviation ``sigma`` gray levels
-    before clipping to 0..255): a power spectrum flat below the grain frequency ``1 /
-    period`` (cycles/px) and falling as ``f**-GRAIN_EXPONENT`` above it, like a ground of
-    pebbles, sand or grass blades ``period`` px across. Deterministic for a seed.
+    before clipping to 0..255), like a ground of pebbles, sand or grass blades about
+    ``period`` px across. Its power spectrum is ``1 / (1 + (f · period)²)**(e / 2)`` with
+    ``e = GRAIN_EXPONENT`` (``f`` in cycles/px): nearly flat well below the grain frequency
+    ``1 / period`` (down to 0.30 at it), falling as ``f**-e`` well above it.
+    Deterministic for a seed. ``period`` is at most ``size``.
 
     Gravel and grass are granular, not fractal: their photographs' spectra are nearly flat
     up to a grain size and steep beyond, where a 1/f texture keeps much of its power at
     low frequencies. Granular ground decorrelates under a sideways shift much sooner
     (README, "Fast oblique flight over rough ground")."""
     period = _finite("period", period)
-    if period <= 0.0:
-        raise ValueError(f"period={period!r}: must be > 0 px")
-    rng = np.random.default_rng(int(seed))
-    fy = np.fft.fftfreq(size)[:, None]
-    fx = np.fft.rfftfreq(size)[None, :]
-    amplitude = (1.0 + (np.hypot(fx, fy) * period) ** 2) ** (-GRAIN_EXPONENT / 4.0)
-    spectrum = (rng.normal(size=amplitude.shape) + 1j * rng.normal(size=amplitude.shape)) * amplitude
-    spectrum[0, 0] = 0.0
-    image = np.fft.irfft2(spectrum, s=(size, size))
-    image = (image - image.mean()) / image.std() * float(sigma) + 128.0
-    return np.clip(image, 0, 255).astype(np.uint8)
+    if not 0.0 < period <= size:
+        raise ValueError(f"period={period!r}: must be > 0 and at most the texture's {size} px")
+    amplitude = (1.0 + (_frequencies(size) * period) ** 2) ** (-GRAIN_EXPONENT / 4.0)
+    return _random_phase_texture(amplitude, seed, size, sigma)
 
 
 def grid_texture(kind: str, seed: int, size: int = 1024, line_width: int = 4,

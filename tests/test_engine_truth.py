@@ -312,11 +312,14 @@ def test_granular_textures():
     # a finer grain is rougher
     roughness = [np.abs(np.diff(load_texture(f"grain-{p}-1"), axis=1)).mean() for p in (4, 12, 30)]
     assert roughness[0] > 1.4 * roughness[1] > 1.4 * 1.4 * roughness[2]
-    for bad in ("grain-x-1", "grain-12-1-40-2", "grain-0-1", "grain-inf-1"):
+    for bad in ("grain-x-1", "grain-12-1-40-2", "grain-0-1", "grain-inf-1", "grain-1e300-1",
+                "grain-12-1-nan", "grain-12-1-0"):
         with pytest.raises(ValueError, match=r"grain-<period px>-<seed>\[-<sigma>\]"):
             load_texture(bad)
-    with pytest.raises(ValueError, match="period=0.0: must be > 0"):
+    with pytest.raises(ValueError, match="period=0.0: must be > 0 and at most the texture's 1024 px"):
         grain_texture(0.0, 1)
+    with pytest.raises(ValueError, match="sigma=-5.0: must be > 0 gray levels"):
+        grain_texture(12, 1, sigma=-5.0)
 
 
 def test_fast_oblique_flight_drowns_the_minor_axis_over_granular_ground():
@@ -344,16 +347,46 @@ def test_fast_oblique_flight_drowns_the_minor_axis_over_granular_ground():
     assert camera_across["direction_error_deg"] < 4.0
     assert gravel_across["quality"] < 0.6 * camera_across["quality"]
     assert gravel_across["quality"] < 0.6 * gravel_along["quality"]
+    assert all(r["blind"] == 0.0 for r in rows)
     assert "| gravel | (10, 4) |" in cross_motion.format_report(rows)
+
+
+def test_cross_motion_flights_stay_over_the_photograph():
+    """Every measured view of every flight lies inside the photograph (no mirrored ground),
+    the flights' midpoints spread over the room it leaves; a path too long says so; a
+    frame without an answer counts as 180° off, as in calibrate_summary's evaluation."""
+    from types import SimpleNamespace
+
+    from emdflow.tools import cross_motion
+
+    flow, first, last = (12.0, 4.0), 9, 17
+    starts = cross_motion._starts((512, 512), 320, 240, flow, first, last, 8)
+    assert len(starts) == 8 and len(set(starts)) == 8
+    for x0, y0 in starts:
+        for t in range(first, last + 1):  # the camera moves by -flow on the ground
+            cx, cy = x0 - flow[0] * t, y0 - flow[1] * t
+            assert 160 <= cx <= 512 - 160 and 120 <= cy <= 512 - 120
+    with pytest.raises(ValueError, match=r"flow \(30, 4\) px/frame: the 320x240 view moves past the 512x512"):
+        cross_motion._starts((512, 512), 320, 240, (30.0, 4.0), first, last, 2)
+    blind = SimpleNamespace(quality=0, flow_x=0.0, flow_y=0.0)
+    assert cross_motion._direction_error(blind, (12.0, 4.0)) == 180.0
+    tilted = SimpleNamespace(quality=9, flow_x=1.0, flow_y=-1.0)
+    assert cross_motion._direction_error(tilted, (1.0, 1.0)) == pytest.approx(90.0)
 
 
 def test_cross_motion_command_refuses_bad_options(capsys):
     from emdflow.tools import cross_motion
 
     assert cross_motion.main(["--minor", "-1", "--textures", "gravel"]) == 2
-    assert "minor=-1.0: must be > 0" in capsys.readouterr().err
+    assert "--minor -1: must be a finite number > 0 (px/frame)" in capsys.readouterr().err
     assert cross_motion.main(["--majors", "-3", "--textures", "gravel"]) == 2
-    assert "must be >= 0" in capsys.readouterr().err
+    assert "--majors -3: must be finite numbers >= 0" in capsys.readouterr().err
+    assert cross_motion.main(["--minor", "inf", "--textures", "gravel"]) == 2
+    assert "--minor inf: must be a finite number > 0 (px/frame)" in capsys.readouterr().err
+    assert cross_motion.main(["--size", "6x6", "--textures", "gravel"]) == 2
+    assert "--size 6x6: both sides must be at least" in capsys.readouterr().err
+    assert cross_motion.main(["--textures", ","]) == 2
+    assert "name at least one ground" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("speed", [1, 3, 5])

@@ -21,6 +21,9 @@ zoom_eval
 rotation_eval
     ``python -m emdflow.tools.rotation_eval``: how much faster a turn reads than a
     translation on a wide lens, per field of view.
+cross_motion
+    ``python -m emdflow.tools.cross_motion``: what the per-axis detectors still see of a
+    flow's minor component as its major one grows (fast oblique flight).
 engine_ab
     ``python -m emdflow.tools.engine_ab CHECKOUT``: the OpenCL engine against another
     checkout's, alternating in one process (speed changes of a few percent).
