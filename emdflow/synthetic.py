@@ -161,30 +161,31 @@ def _grid(kind: str, seed: int, size: int, line_width: int) -> np.ndarray:
     return image
 
 
+#: Random textures by name, ``<kind>-<parameter>-<seed>[-<sigma>]``: the function, what its
+#: first parameter is, and examples for the error message.
+_NOISE_TEXTURES = {
+    "fractal": (fractal_texture, "beta", "fractal-1.0-1 or fractal-0.8-3-60"),
+    "grain": (grain_texture, "period px", "grain-12-1 or grain-8-3-50"),
+}
+
+
 @lru_cache(maxsize=16)
 def _load_texture_cached(name: str) -> np.ndarray:
     if name in TEXTURES or name in _EXTRA_PHOTOGRAPHS:
         import skimage.data
 
         image = getattr(skimage.data, name)()
-    elif name.startswith("fractal-") and not Path(name).is_file():
-        try:  # fractal-<beta>-<seed>[-<sigma>]
-            _, beta, seed, *sigma = name.split("-")
+    elif name.partition("-")[0] in _NOISE_TEXTURES and not Path(name).is_file():
+        kind = name.partition("-")[0]
+        make, parameter, examples = _NOISE_TEXTURES[kind]
+        try:  # <kind>-<parameter>-<seed>[-<sigma>]
+            _, value, seed, *sigma = name.split("-")
             if len(sigma) > 1:
                 raise ValueError(name)
-            image = fractal_texture(float(beta), int(seed), sigma=float(sigma[0]) if sigma else 40.0)
+            image = make(float(value), int(seed), sigma=float(sigma[0]) if sigma else 40.0)
         except ValueError:
-            raise ValueError(f"texture {name!r}: expected fractal-<beta>-<seed>[-<sigma>], "
-                             "e.g. fractal-1.0-1 or fractal-0.8-3-60") from None
-    elif name.startswith("grain-") and not Path(name).is_file():
-        try:  # grain-<period>-<seed>[-<sigma>]
-            _, period, seed, *sigma = name.split("-")
-            if len(sigma) > 1:
-                raise ValueError(name)
-            image = grain_texture(float(period), int(seed), sigma=float(sigma[0]) if sigma else 40.0)
-        except ValueError:
-            raise ValueError(f"texture {name!r}: expected grain-<period px>-<seed>[-<sigma>], "
-                             "e.g. grain-12-1 or grain-8-3-50") from None
+            raise ValueError(f"texture {name!r}: expected {kind}-<{parameter}>-<seed>[-<sigma>], "
+                             f"e.g. {examples}") from None
     elif name.startswith(("lines-", "cells-")) and not Path(name).is_file():
         kind, _, rest = name.partition("-")
         fields = rest.split("-", 1)  # the angle may carry its own minus sign
