@@ -358,6 +358,7 @@ def test_cross_motion_flights_stay_over_the_photograph():
     from types import SimpleNamespace
 
     from emdflow.tools import cross_motion
+    from emdflow.tools.calibrate_summary import _frame_error  # what cross_motion counts with
 
     flow, first, last = (12.0, 4.0), 9, 17
     starts = cross_motion._starts((512, 512), 320, 240, flow, first, last, 8)
@@ -369,9 +370,9 @@ def test_cross_motion_flights_stay_over_the_photograph():
     with pytest.raises(ValueError, match=r"flow \(30, 4\) px/frame: the 320x240 view moves past the 512x512"):
         cross_motion._starts((512, 512), 320, 240, (30.0, 4.0), first, last, 2)
     blind = SimpleNamespace(quality=0, flow_x=0.0, flow_y=0.0)
-    assert cross_motion._direction_error(blind, (12.0, 4.0)) == 180.0
+    assert _frame_error(blind, 12.0, 4.0)[1] == 180.0
     tilted = SimpleNamespace(quality=9, flow_x=1.0, flow_y=-1.0)
-    assert cross_motion._direction_error(tilted, (1.0, 1.0)) == pytest.approx(90.0)
+    assert _frame_error(tilted, 1.0, 1.0)[1] == pytest.approx(90.0)
 
 
 def test_cross_motion_command_refuses_bad_options(capsys):

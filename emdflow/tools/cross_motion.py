@@ -63,14 +63,6 @@ def bracketing_channels(speeds, minor: float) -> tuple[int, ...]:
     return tuple(sorted(picked))
 
 
-def _direction_error(s, flow) -> float:
-    """Degrees between the summary's flow and ``flow``; 180 for a quality-0 frame."""
-    if s.quality == 0:
-        return 180.0
-    d = math.degrees(math.atan2(s.flow_y, s.flow_x) - math.atan2(flow[1], flow[0]))
-    return abs((d + 180.0) % 360.0 - 180.0)
-
-
 def _starts(texture_shape, width: int, height: int, flow, first: int, last: int, flights: int):
     """Camera positions at frame 0 (ground px) of ``flights`` flights whose views from frame
     ``first`` to ``last`` stay inside the photograph: the path's midpoint at the centre,
@@ -107,6 +99,7 @@ def evaluate(*, model: str = "extended", textures=DEFAULT_TEXTURES, minor: float
     instead of one made from ``model`` and ``backend``."""
     import emdflow
     from emdflow.field import FlowField
+    from emdflow.tools.calibrate_summary import _frame_error
     from emdflow.synthetic import CameraFlight, load_texture
 
     if model not in MODELS:
@@ -145,7 +138,7 @@ def evaluate(*, model: str = "extended", textures=DEFAULT_TEXTURES, minor: float
                     counts += field.histogram[1].sum(axis=-1)  # vertical axis, per code
                     s = emdflow.summarize(field)
                     reads.append((s.flow_x, s.flow_y) if s.quality > 0 else (0.0, 0.0))
-                    errors.append(_direction_error(s, flow))
+                    errors.append(_frame_error(s, *flow)[1])  # quality 0: 180°
                     quality.append(s.quality)
                     hist = field.histogram.copy()
                     hist[1] = 0
