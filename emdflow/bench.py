@@ -355,6 +355,8 @@ def _check_arguments(parser: argparse.ArgumentParser, args) -> dict:
     if args.evidence_row_step:
         kwargs["evidence_row_step"] = args.evidence_row_step
         given.append(f"--evidence-row-step {args.evidence_row_step}")
+    if not args.diagonal_evidence:
+        kwargs["diagonal_evidence"] = False
     try:  # the engine's own checks, before the flight is rendered
         EngineParams(**kwargs)
     except (TypeError, ValueError) as exc:
@@ -390,6 +392,9 @@ def main(argv=None) -> int:
     parser.add_argument("--evidence-row-step", type=int, default=0,
                         help="rows between the rows that feed the summary's evidence (default: 0, "
                              "automatic: about 60 rows; 1 = every row, see EngineParams)")
+    parser.add_argument("--diagonal-evidence", action=argparse.BooleanOptionalAction, default=True,
+                        help="with (default) or without the diagonal detectors' evidence for the "
+                             "summary (EngineParams.diagonal_evidence)")
     parser.add_argument("--stages", action="store_true",
                         help="instead: device time per command of a frame (OpenCL profiling events)")
     parser.add_argument("--drift", type=float, default=0.0,
@@ -413,6 +418,7 @@ def main(argv=None) -> int:
     print(f"# emdflow bench — {environment}; model: {args.model}"
           + (f", delays {kwargs['delays']}" if args.delays is not None else "")
           + (f", evidence every {args.evidence_row_step} row(s)" if args.evidence_row_step else "")
+          + ("" if args.diagonal_evidence else ", without diagonal evidence")
           + f"; flight over {args.texture}",
           flush=True)
     if args.stages:

@@ -47,8 +47,9 @@ class FlowField:
         Speed of each channel, px/frame (``u = sign(code) · speeds[|code| − 1]``).
     stats : ndarray of int64
         Per-frame counters (detections, textured and saturated pixels, changed states).
-    histogram : ndarray of int64, shape (2, 2·channels, params.histogram_bins), or None
-        Detections binned by axis, signed channel, gradient-strength class and gradient
+    histogram : ndarray of int64, shape (params.evidence_axes, 2·channels, params.histogram_bins), or None
+        Detections binned by axis (horizontal, vertical, and with ``diagonal_evidence`` the
+        two diagonals), signed channel, gradient-strength class and gradient
         orientation (``class · ORIENTATION_BINS + orientation``; the summary's input; see
         :func:`emdflow.reference.summary_statistics`). None when the estimator was made
         with ``summary_evidence=False``.

@@ -245,7 +245,7 @@ class _Layout:
         self.n_runs = _ceil(height * self.NWP, 8)
         self.OUT_PLANE = self.n_runs * 8
         self.sat_elems = (height + 1) * self.SSTRIDE
-        self.hist_size = 2 * 2 * len(chans) * params.histogram_bins
+        self.hist_size = params.evidence_axes * 2 * len(chans) * params.histogram_bins
         self.HIST_COPIES = max(1, self.HIST_BUDGET * ORIENTATION_BINS // params.histogram_bins)
         self.pos_size = 2 * 2 * len(chans) * POSITION_BINS
         self.n_fixed = STAT_FIRST_CHANGED + len(chans)  # at most 7 + 15 < SLOT_INTS
@@ -279,6 +279,7 @@ class _Layout:
             "SHARP": int(params.sharp_templates),
             "STATS_OFFSET": self.stats_offset, "N_STATS": self.n_stats,
             "EVIDENCE": int(params.summary_evidence),
+            "DIAGONAL": int(params.summary_evidence and params.diagonal_evidence),
             "EVIDENCE_ROW_STEP": params.evidence_row_step_for(height),
             # bits of a 32-pixel word in the sampled columns (the step is a power of two)
             "EVIDENCE_COLUMNS": "0x%08Xu" % sum(1 << j for j in range(0, 32, params.evidence_column_step(width))),
@@ -639,7 +640,7 @@ class OpenCLEngine:
             return codes, stats, None, None
         positions = _fold_copies(ints[lay.pos_offset : lay.hist_offset].reshape(lay.POS_COPIES, lay.pos_size))
         copies = ints[lay.hist_offset :].reshape(lay.HIST_COPIES, lay.hist_size)
-        hist = _fold_copies(copies).reshape(2, 2 * n_ch, self.params.histogram_bins)
+        hist = _fold_copies(copies).reshape(self.params.evidence_axes, 2 * n_ch, self.params.histogram_bins)
         return codes, stats, hist, positions.reshape(2, 2 * n_ch, POSITION_BINS)
 
     def step(self, frame: np.ndarray):

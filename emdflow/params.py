@@ -201,6 +201,20 @@ class EngineParams:
         caller that never summarises (a researcher's dense flow); those two functions then
         refuse the field, and so do the command-line tools, which summarise every frame.
         The detections do not change.
+    diagonal_evidence : bool
+        Also run velocity detectors along the two diagonals on the evidence rows and bin
+        their detections as histogram axes 2 (down-right, ``B = A + k·(1, 1)``) and 3
+        (up-right, ``B = A + k·(1, −1)``); on by default. The dense field (``u``, ``v``)
+        and the position histogram stay the horizontal and vertical detectors' own (the
+        paper's four directions): the diagonals only feed :func:`emdflow.summarize`,
+        whose calibration tables then carry a second set of distributions for them. A
+        detector is one-dimensional, and a flow with a large component across its axis
+        slides the ground sideways under its receptors: over granular ground the minor
+        axis of a fast oblique flow goes blind, while the diagonal nearest the flow sees
+        it with little sideways motion. The paper's model on random flights at 320×240:
+        6.3 % / 1.96° median error instead of 8.9 % / 2.37°, for 10–15 % more engine time
+        at 640×480 (README, "Diagonal evidence"). False gives the former evidence and
+        tables.
     """
 
     scales: tuple[int, ...] = (1, 3, 5, 7, 9, 11, 13)
@@ -217,11 +231,13 @@ class EngineParams:
     gradient_classes: bool = False
     evidence_row_step: int = 0
     summary_evidence: bool = True
+    diagonal_evidence: bool = True
 
     def __post_init__(self):
         # every field is checked for its type as well as its range: a string, a fraction
         # or None must not become a different model by silent conversion
-        for name in ("sharp_templates", "brightness_compensation", "gradient_classes", "summary_evidence"):
+        for name in ("sharp_templates", "brightness_compensation", "gradient_classes", "summary_evidence",
+                     "diagonal_evidence"):
             object.__setattr__(self, name, _flag(name, getattr(self, name)))
         step = self.evidence_row_step
         if not _is_whole(step) or not 0 <= step <= 1024:
@@ -274,6 +290,12 @@ class EngineParams:
     def class_steps(self) -> tuple[int, ...]:
         """Steps of the gradient-strength classes (empty without ``gradient_classes``)."""
         return GRADIENT_CLASS_STEPS if self.gradient_classes else ()
+
+    @property
+    def evidence_axes(self) -> int:
+        """Detector axes in the detection histogram: horizontal and vertical, and with
+        ``diagonal_evidence`` the two diagonals."""
+        return 4 if self.diagonal_evidence else 2
 
     @property
     def histogram_bins(self) -> int:

@@ -52,7 +52,11 @@ __all__ = [
 ]
 
 #: Detector directions as unit steps (dx, dy) in image coordinates (y down).
-DIRECTIONS = {"E": (1, 0), "W": (-1, 0), "S": (0, 1), "N": (0, -1)}
+DIRECTIONS = {"E": (1, 0), "W": (-1, 0), "S": (0, 1), "N": (0, -1),
+              # the diagonals of the summary's evidence (EngineParams.diagonal_evidence)
+              "SE": (1, 1), "NW": (-1, -1), "NE": (1, -1), "SW": (-1, 1)}
+#: The evidence histogram's axes: (positive, negative) direction of each (x right, y down).
+EVIDENCE_AXES = (("E", "W"), ("S", "N"), ("SE", "NW"), ("NE", "SW"))
 
 # Layout of the per-frame statistics vector (int64) shared with the OpenCL backend.
 STAT_U_DETECTIONS = 0  #: pixels with a horizontal detection
@@ -168,6 +172,20 @@ def _shift(states: np.ndarray, dx: int, dy: int) -> np.ndarray:
     return out
 
 
+def _rows_at(states: np.ndarray, rows: np.ndarray, dx: int, dy: int) -> np.ndarray:
+    """Value at ``(x + dx, y + dy)`` for every pixel ``x`` of the rows ``rows`` (0 outside
+    the frame): :func:`_shift` on those rows only."""
+    H, W = states.shape
+    out = np.zeros((rows.size, W), states.dtype)
+    ys = rows + dy
+    inside = (ys >= 0) & (ys < H)
+    if abs(dx) < W:
+        xs = slice(max(0, -dx), W - max(0, dx))
+        xs_src = slice(max(0, dx), W + min(0, dx))
+        out[inside, xs] = states[ys[inside], xs_src]
+    return out
+
+
 def _motion_templates(a_prev, b_prev, a_now, b_now, sharp: bool):
     """The directional 2×2 templates for ``a → b`` (spec §2), per polarity and type.
 
@@ -187,7 +205,7 @@ def _motion_templates(a_prev, b_prev, a_now, b_now, sharp: bool):
 
 def velocity_templates(
     s_old: np.ndarray, s_mid: np.ndarray, s_new: np.ndarray, k: int, direction: str,
-    *, sharp: bool = False,
+    *, sharp: bool = False, rows: np.ndarray | None = None,
 ) -> np.ndarray:
     """Elementary Velocity Detector output for one scale and direction (paper §3.1).
 
@@ -200,9 +218,13 @@ def velocity_templates(
         Ternary states at ``t−2D``, ``t−D`` and ``t``.
     k : int
         Receptor spacing in pixels (the scale).
-    direction : {'E', 'W', 'S', 'N'}
+    direction : {'E', 'W', 'S', 'N', 'SE', 'NW', 'NE', 'SW'}
+        ``B − A`` is ``k`` times the direction's step (x right, y down); the diagonals
+        feed only the summary's evidence (``EngineParams.diagonal_evidence``).
     sharp : bool
         Also accept the sharp template.
+    rows : ndarray of int, optional
+        Only these rows of ``A`` (the result then has one row per entry); default all.
 
     Returns
     -------
@@ -210,8 +232,13 @@ def velocity_templates(
         True where the detector linked to ``A`` fires.
     """
     dx, dy = DIRECTIONS[direction]
-    b_old, b_mid, b_new = (_shift(s, k * dx, k * dy) for s in (s_old, s_mid, s_new))
-    c_mid, c_new = (_shift(s, 2 * k * dx, 2 * k * dy) for s in (s_mid, s_new))
+    if rows is None:
+        b_old, b_mid, b_new = (_shift(s, k * dx, k * dy) for s in (s_old, s_mid, s_new))
+        c_mid, c_new = (_shift(s, 2 * k * dx, 2 * k * dy) for s in (s_mid, s_new))
+    else:
+        b_old, b_mid, b_new = (_rows_at(s, rows, k * dx, k * dy) for s in (s_old, s_mid, s_new))
+        c_mid, c_new = (_rows_at(s, rows, 2 * k * dx, 2 * k * dy) for s in (s_mid, s_new))
+        s_old, s_mid = s_old[rows], s_mid[rows]
     first = _motion_templates(s_old, b_old, s_mid, b_mid, sharp)  # A→B at t−D
     second = _motion_templates(b_mid, c_mid, b_new, c_new, sharp)  # B→C at t
     fired = np.zeros(s_old.shape, bool)
@@ -275,6 +302,7 @@ def summary_statistics(
     theta_q: int | None = None,
     step_states: np.ndarray | None = None,
     gains_q: dict | None = None,
+    diagonal_codes: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame evidence for the summary (identical in both backends).
 
@@ -292,20 +320,23 @@ def summary_statistics(
       (``class`` the gradient-strength class, see ``GRADIENT_CLASS_STEPS``): detections on every
       ``params.evidence_row_step_for(H)``-th row and
       ``EngineParams.evidence_column_step(W)``-th column,
-      ``axis`` 0 = horizontal / 1 = vertical, ``code = 2c + (1 if negative)``,
+      ``axis`` 0 = horizontal / 1 = vertical (2 = down-right and 3 = up-right diagonal
+      with ``params.diagonal_evidence``, from ``diagonal_codes``), ``code = 2c + (1 if
+      negative)``,
       ``orientation`` the bin of the gradient of the receptor image ``R_k`` at the middle
       receptor ``B`` at ``t−D`` (spec §6), reads clamped to the valid receptor range; the
       class compares that gradient, brought to the brightness of ``t`` by the channel's
       exposure gain ``gains_q[(k, D)] / 256`` (brightness compensation; 256 without), with
       the threshold of ``t``: ``2 · gain_q · |g|₁ >= m · 2θ_q k²``;
-    * the position histogram ``positions[axis, code, bin]`` of the same detections: ``bin``
+    * the position histogram ``positions[axis, code, bin]`` of the horizontal and vertical
+      detections: ``bin``
       is ``x · POSITION_BINS // W`` for horizontal and ``y · POSITION_BINS // H`` for
       vertical detections (expansion and balance cues).
 
     Returns
     -------
     stats : ndarray of int64, shape (STAT_FIRST_CHANGED + n_channels,)
-    hist : ndarray of int64, shape (2, 2·n_channels, params.histogram_bins)
+    hist : ndarray of int64, shape (params.evidence_axes, 2·n_channels, params.histogram_bins)
     positions : ndarray of int64, shape (2, 2·n_channels, POSITION_BINS)
         Both None without ``params.summary_evidence``.
     """
@@ -334,9 +365,12 @@ def summary_statistics(
         return stats, None, None
     positions = np.zeros((2, 2 * len(channels), POSITION_BINS), np.int64)
 
-    hist = np.zeros((2, 2 * len(channels), params.histogram_bins), np.int64)
+    hist = np.zeros((params.evidence_axes, 2 * len(channels), params.histogram_bins), np.int64)
     channel_gain = np.array([(gains_q or {}).get(ch, 256) for ch in channels], np.int64)
-    for axis, code in enumerate((u_code, v_code)):
+    axis_codes = [u_code, v_code]
+    if params.diagonal_evidence:
+        axis_codes += list(diagonal_codes)
+    for axis, code in enumerate(axis_codes):
         step = params.evidence_row_step_for(H)
         xstep = params.evidence_column_step(W)
         ys, xs = np.nonzero(code[0::step, 0::xstep])
@@ -347,13 +381,15 @@ def summary_statistics(
         cval = code[ys, xs].astype(np.int64)
         chan = np.abs(cval) - 1
         negative = cval < 0
-        where = xs * POSITION_BINS // W if axis == 0 else ys * POSITION_BINS // H
-        np.add.at(positions[axis], (2 * chan + negative, where), 1)
+        if axis < 2:
+            where = xs * POSITION_BINS // W if axis == 0 else ys * POSITION_BINS // H
+            np.add.at(positions[axis], (2 * chan + negative, where), 1)
         ks = np.array([channels[c][0] for c in range(len(channels))])[chan]
         ds = np.array([channels[c][1] for c in range(len(channels))])[chan]
         step = np.where(negative, -ks, ks)
-        bx = xs + (step if axis == 0 else 0)
-        by = ys + (step if axis == 1 else 0)
+        ex, ey = DIRECTIONS[EVIDENCE_AXES[axis][0]]  # B = A ± k (ex, ey)
+        bx = xs + ex * step
+        by = ys + ey * step
         gxs = np.zeros(ys.size, np.int64)
         gys = np.zeros(ys.size, np.int64)
         for key in np.unique(np.stack([ks, ds], 1), axis=0):
@@ -390,7 +426,7 @@ class ReferenceEngine:
     Attributes after :meth:`step` (for tests and inspection)
     ---------------------------------------------------------
     states : list of int8 arrays, one per channel — states at ``t``
-    matches : dict ``(channel, direction) -> bool array`` — raw detector outputs
+    matches : dict ``(channel, direction) -> bool array`` — raw detector outputs (E, W, S, N)
     """
 
     def __init__(self, width: int, height: int, params: EngineParams):
@@ -417,8 +453,10 @@ class ReferenceEngine:
         del self._brightness[: -(prm.max_delay + 1)]
         zeros = np.zeros(frame.shape, np.int8)
         step_states = None  # the finest channel's uncompensated states (None: its own)
-        pos = {0: [], 1: []}
-        neg = {0: [], 1: []}
+        n_axes = prm.evidence_axes if prm.summary_evidence else 2
+        evidence_rows = np.arange(0, frame.shape[0], prm.evidence_row_step_for(frame.shape[0]))
+        pos = {a: [] for a in range(n_axes)}
+        neg = {a: [] for a in range(n_axes)}
         self.states = []
         self.matches = {}
         receptors_mid = {}
@@ -444,11 +482,14 @@ class ReferenceEngine:
             self.states.append(s_now)
             s_old = hist[-1 - 2 * d] if len(hist) > 2 * d else zeros
             s_mid = hist[-1 - d] if len(hist) > d else zeros
-            for axis, (dpos, dneg) in enumerate((("E", "W"), ("S", "N"))):
-                mp = velocity_templates(s_old, s_mid, s_now, k, dpos, sharp=prm.sharp_templates)
-                mn = velocity_templates(s_old, s_mid, s_now, k, dneg, sharp=prm.sharp_templates)
-                self.matches[(c, dpos)] = mp
-                self.matches[(c, dneg)] = mn
+            for axis, (dpos, dneg) in enumerate(EVIDENCE_AXES[:n_axes]):
+                # the diagonals feed the evidence only: their detectors run on its rows
+                rows = evidence_rows if axis >= 2 else None
+                mp = velocity_templates(s_old, s_mid, s_now, k, dpos, sharp=prm.sharp_templates, rows=rows)
+                mn = velocity_templates(s_old, s_mid, s_now, k, dneg, sharp=prm.sharp_templates, rows=rows)
+                if axis < 2:  # (the diagonals' matches show in the histogram only)
+                    self.matches[(c, dpos)] = mp
+                    self.matches[(c, dneg)] = mn
                 pos[axis].append(mp)
                 neg[axis].append(mn)
             if prm.summary_evidence:  # the evidence's gradients
@@ -456,9 +497,14 @@ class ReferenceEngine:
                 receptors_mid[(k, d)] = box_sums(p_mid, k)
         u_code = fuse_channels(pos[0], neg[0])
         v_code = fuse_channels(pos[1], neg[1])
+        diagonal = None
+        if n_axes > 2:  # the diagonals' codes on the evidence rows (0 elsewhere)
+            diagonal = tuple(np.zeros_like(u_code) for _ in range(2, n_axes))
+            for a, code in zip(range(2, n_axes), diagonal):
+                code[evidence_rows] = fuse_channels(pos[a], neg[a])
         stats, hist, positions = summary_statistics(
             prm, frame, p_now, u_code, v_code, receptors_mid, self.states, self.theta_q, step_states,
-            gains_q,
+            gains_q, diagonal,
         )
         self.last_theta_q = self.theta_q
         self.theta_q = prm.next_threshold_q(int(stats[STAT_CONTRAST]), prm.contrast_samples(*frame.shape[::-1]))

@@ -74,6 +74,10 @@ class EngineConfig:
     # direction error from ~1.9 to ~1.65 degrees for ~0.35 ms more engine time per frame
     evidence_row_step: int = _opt(0, minimum=0, maximum=1024,
                                   doc="rows between the rows feeding the summary (0: automatic)")
+    # detectors along the two diagonals feed the summary (not the dense field): a fast
+    # oblique flight over rough ground no longer blinds its minor axis (README, "Diagonal
+    # evidence"); false saves ~10-15 % of the engine time at 640x480 for that accuracy
+    diagonal_evidence: bool = _opt(True, doc="diagonal detectors in the summary's evidence")
 
     def estimator_options(self) -> dict:
         """Keyword arguments of ``emdflow.FlowEstimator`` for this section."""
@@ -85,6 +89,8 @@ class EngineConfig:
             options["gradient_classes"] = False
         if self.evidence_row_step:
             options["evidence_row_step"] = self.evidence_row_step
+        if not self.diagonal_evidence:
+            options["diagonal_evidence"] = False
         return options
 
 

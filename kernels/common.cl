@@ -64,7 +64,9 @@
 #define STAT_POS (COUNTER_COPIES * SLOT_INTS)
 #define POS_SIZE (2 * 2 * NCH * POS_BINS)
 #define STAT_HIST (STAT_POS + POS_COPIES * POS_SIZE)
-#define HIST_SIZE (2 * 2 * NCH * NCLASS * NBINS)
+/* detector axes binned: horizontal, vertical and, with DIAGONAL, the two diagonals */
+#define EVIDENCE_AXES (DIAGONAL ? 4 : 2)
+#define HIST_SIZE (EVIDENCE_AXES * 2 * NCH * NCLASS * NBINS)
 
 __constant int CK[NCH] = { CH_K };
 __constant int CD[NCH] = { CH_D };

@@ -16,7 +16,13 @@
  * dense field is read. On every EVIDENCE_ROW_STEP-th row the detections are also binned
  * for the summary (evidence.cl): one launch less, and the planes are still in L1.
  * The axes are fused one after the other: the fusion state of one axis (6 vectors) plus
- * the template operands fit the 16 AVX2 registers; both axes at once spilled. */
+ * the template operands fit the 16 AVX2 registers; both axes at once spilled.
+ * With DIAGONAL, runs that hold an evidence row also run the detectors along the two
+ * diagonals (B = A + k (1, 1) and A + k (1, -1)) and bin their fused detections on that
+ * row as histogram axes 2 and 3: they feed the summary only, not the output planes. */
+
+/* the 8 words of a run, as a vector or one by one */
+typedef union { uint8 v; uint w[8]; } run_words;
 
 /* bits of pixels x0 + j + s, j = 0..31, for 0 < |s| < 32, for 8 words at once */
 inline uint8 along(__global const uint *p, int s)
@@ -132,4 +138,36 @@ __kernel void velocity_detectors(__global const uint *planes, __global char *res
             run_flush(hist, &hist_run);
         }
     }
+#if DIAGONAL
+    if (!evidence) return;
+    for (int axis = 2; axis < 4; axis++) {
+        const int uy = axis == 2 ? 1 : -1;
+        uint8 decided = (uint8)(0u), sign = (uint8)(0u);
+        uint8 idx0 = decided, idx1 = decided, idx2 = decided, idx3 = decided;
+#pragma unroll
+        for (int c = NCH - 1; c >= 0; c--) {
+            const uint8 mp = matches(planes, c, t, f, 1, uy), mn = matches(planes, c, t, f, -1, -uy);
+            const uint8 p = mp & ~decided, n = mn & ~decided, won = p ^ n;
+            sign |= n & ~p;
+            if ((c + 1) & 1) idx0 |= won;
+            if ((c + 1) & 2) idx1 |= won;
+            if ((c + 1) & 4) idx2 |= won;
+            if ((c + 1) & 8) idx3 |= won;
+            decided |= mp | mn;
+        }
+        if (!lane_popcount(idx0 | idx1 | idx2 | idx3)) continue;
+        /* the words of the run, one by one (vector lanes cannot be indexed by a variable;
+         * a union can, and vstore8 is a library call on PoCL) */
+        const run_words b0 = { idx0 }, b1 = { idx1 }, b2 = { idx2 }, b3 = { idx3 }, bs = { sign };
+        __global int *hist = stats + STAT_HIST + (get_group_id(0) % HIST_COPIES) * HIST_SIZE;
+        bin_run pos_run = { -1, 0 }, hist_run = { -1, 0 };
+        for (int w = 0; w < 8; w++) {
+            const int y = (f + w) / NWP, i = f + w - y * NWP - 1;
+            if (y % EVIDENCE_ROW_STEP == 0 && y < H && i >= 0)
+                bin_detections(0, hist, sat, P, bright, t, theta_q, axis, y, i, b0.w[w], b1.w[w], b2.w[w],
+                               b3.w[w], bs.w[w], &pos_run, &hist_run);
+        }
+        run_flush(hist, &hist_run);
+    }
+#endif
 }

@@ -97,7 +97,9 @@ __attribute__((always_inline)) inline void count_positions(__global int *positio
 }
 
 /* Bin the detections of word i of row y (bit planes b0..b3 = channel index c + 1, bs =
- * sign) of one axis into the position and orientation histograms, channel by channel: a
+ * sign) of one axis (0 horizontal, 1 vertical, 2 and 3 the diagonals B = A + k (1, 1) and
+ * A + k (1, -1), which have no position histogram) into the position and orientation
+ * histograms, channel by channel: a
  * channel's detections share its scale, delay and table, and their positions are counted
  * by popcount. The gradient of a scale-1 receptor image is the prefiltered image's own
  * (from the ring of P; the tables keep only the frames the larger scales need). */
@@ -114,7 +116,7 @@ inline void bin_detections(__global int *positions, __global int *hist, __global
         uint m = any & ((v & 1) ? b0 : ~b0) & ((v & 2) ? b1 : ~b1) & ((v & 4) ? b2 : ~b2)
                      & ((v & 8) ? b3 : ~b3);
         if (!m) continue;
-        count_positions(positions, pos_run, (axis * 2 * NCH + 2 * c) * POS_BINS, axis, y, i, m, bs);
+        if (axis < 2) count_positions(positions, pos_run, (axis * 2 * NCH + 2 * c) * POS_BINS, axis, y, i, m, bs);
         const int k = CK[c], r = k / 2, D = CD[c];
         __global const uchar *R = P + pos_mod(t - D, P_SLOTS) * P_SIZE + PPAD;
         __global const ushort *S = sat + pos_mod(t - D, SAT_SLOTS) * SAT_SIZE;
@@ -131,8 +133,9 @@ inline void bin_detections(__global int *positions, __global int *hist, __global
             const int x = i * 32 + (int)l;
             const int negative = (int)((bs >> l) & 1u);
             const int step = negative ? -k : k;
-            const int bx = axis ? x : x + step;
-            const int by = axis ? y + step : y;
+            /* B = A + step (ex, ey) */
+            const int bx = axis == 1 ? x : x + step;
+            const int by = axis == 0 ? y : (axis == 3 ? y - step : y + step);
             const int xr = bx + 1 < W - 1 - r ? bx + 1 : W - 1 - r;
             const int xl = bx - 1 > r ? bx - 1 : r;
             const int yd = by + 1 < H - 1 - r ? by + 1 : H - 1 - r;

@@ -215,6 +215,15 @@ def test_engine_model_selects_the_estimator_options(tmp_path):
     assert emdflow.FlowEstimator(64, 48, backend="numpy", **dense).params.evidence_row_step_for(48) == 1
     with pytest.raises(ConfigError, match="evidence_row_step"):
         load_config(_write(tmp_path, '[engine]\nevidence_row_step = -2\n'))
+    # the diagonal detectors' evidence: on unless turned off, for either model
+    assert "diagonal_evidence" not in options
+    assert emdflow.FlowEstimator(64, 48, backend="numpy", **options).params.evidence_axes == 4
+    for model in ("extended", "paper"):
+        off = load_config(_write(tmp_path, f'[engine]\nmodel = "{model}"\ndiagonal_evidence = false\n'))
+        est = emdflow.FlowEstimator(64, 48, backend="numpy", **off.engine.estimator_options())
+        assert est.params.evidence_axes == 2 and not est.params.diagonal_evidence
+    with pytest.raises(ConfigError, match="diagonal_evidence"):
+        load_config(_write(tmp_path, '[engine]\ndiagonal_evidence = "no"\n'))
 
 
 def test_autopilot_and_protocol_that_fit_together(tmp_path):

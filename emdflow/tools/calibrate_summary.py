@@ -173,17 +173,37 @@ COLLECT_RANGES = {
 }
 
 
-def model_params(model: str):
+def model_options(model: str, diagonal: bool = True) -> dict:
+    """The ``FlowEstimator`` keywords of ``model`` with ``diagonal_evidence=diagonal`` (the
+    default, on: the flights and tables of the diagonal detectors' evidence; off: those of
+    the horizontal and vertical detectors alone, the former tables)."""
+    return dict(MODELS[model], diagonal_evidence=bool(diagonal))
+
+
+def model_params(model: str, diagonal: bool = True):
     from emdflow.params import EngineParams
 
-    return EngineParams(**MODELS[model])
+    return EngineParams(**model_options(model, diagonal))
 
 
-def calibration_path(model: str, ground: str = "edges") -> Path:
+def has_diagonal(data) -> bool:
+    """Whether the stored flights ``data`` (paths) carry the diagonal detectors' histogram
+    axes (all of them, or none: SystemExit on a mixture)."""
+    kinds = set()
+    for path in data:
+        with np.load(path) as d:
+            kinds.add(d["hist"].shape[1] == 4)
+    if len(kinds) > 1:
+        raise SystemExit("the calibration files mix flights with and without diagonal evidence")
+    return kinds == {True}
+
+
+def calibration_path(model: str, ground: str = "edges", diagonal: bool = False) -> Path:
     """Where ``fit --write`` stores the table of ``model`` for ``ground`` (summary.py finds
-    it there): ``summary_calibration[_<model>][_lines].npz``."""
+    it there): ``summary_calibration[_<model>][_lines][_diagonal].npz``."""
     name = "summary_calibration" + ("" if model == "paper" else f"_{model}")
     name += "" if ground == "edges" else f"_{ground}"
+    name += "_diagonal" if diagonal else ""
     return Path(__file__).resolve().parents[1] / (name + ".npz")
 
 
@@ -199,7 +219,7 @@ def _checked_noise(lo, hi, name: str) -> tuple[float, float]:
 def collect(flights: int, out: str, frames: int = 7, seed: int = 20240601, width=320, height=240,
             textures=CALIBRATION_TEXTURES, backend: str = "opencl", scale_range=(1.0, 1.0),
             model: str = "paper", contrast_range=None, evidence_row_step: int = 0,
-            noise_range=(1.0, 3.0)):
+            noise_range=(1.0, 3.0), diagonal: bool = True):
     """Render ``flights`` random flights; store every ready frame's histogram and truth.
 
     Each flight draws a direction, a speed (log-uniform over the model's range, 0.4..18
@@ -219,7 +239,7 @@ def collect(flights: int, out: str, frames: int = 7, seed: int = 20240601, width
     from emdflow.synthetic import CameraFlight, load_texture
 
     rng = np.random.default_rng(seed)
-    est = FlowEstimator(width, height, backend=backend, **MODELS[model],
+    est = FlowEstimator(width, height, backend=backend, **model_options(model, diagonal),
                         evidence_row_step=evidence_row_step)
     ranges = dict(COLLECT_RANGES[model])
     if contrast_range is not None:
@@ -311,15 +331,27 @@ GRADIENT_CLASS_TABLES = {"paper": False, "extended": True}
 MIN_CELL_WEIGHT = 100.0
 
 
-def crossing_geometry():
-    """Per (axis, orientation bin): unit normal (2, 64, 2), signed n_a and ψ in degrees."""
+#: The detector step of each histogram axis (x right, y down): horizontal, vertical and
+#: the two diagonals of ``EngineParams.diagonal_evidence``.
+AXIS_STEPS = ((1, 0), (0, 1), (1, 1), (1, -1))
+#: The axes that share a table: the horizontal and vertical detectors', and the diagonals'.
+AXIS_GROUPS = ((0, 1), (2, 3))
+
+
+def crossing_geometry(axes=(0, 1)):
+    """Per (axis, orientation bin) of ``axes``: unit normal (axes, 64, 2), the normal's
+    signed component along the detector's step ``n_a`` (``c = n·F / n_a`` is then the
+    crossing speed in steps per frame: px along an axis, (1, ±1) steps along a diagonal)
+    and ψ, the angle between the normal and the step, in degrees."""
     from emdflow.params import EngineParams
 
     phi = EngineParams.orientation_centres()
     n = np.stack([np.cos(phi), np.sin(phi)], axis=1)  # (64, 2)
-    normals = np.stack([n, n])  # (axis, bin, 2)
-    n_axis = np.stack([n[:, 0], n[:, 1]])  # (axis, bin), signed
-    psi = np.degrees(np.arccos(np.clip(np.abs(n_axis), 0.0, 1.0)))
+    steps = np.asarray([AXIS_STEPS[a] for a in axes], np.float64)  # (axes, 2)
+    normals = np.stack([n] * len(axes))  # (axis, bin, 2)
+    n_axis = steps @ n.T  # (axis, bin), signed
+    length = np.hypot(steps[:, 0], steps[:, 1])[:, None]
+    psi = np.degrees(np.arccos(np.clip(np.abs(n_axis) / length, 0.0, 1.0)))
     return normals, n_axis, psi
 
 
@@ -327,11 +359,11 @@ def u_nodes(u_offset=U_OFFSET, u_count=U_COUNT):
     return np.linspace(math.log(u_offset), math.log(C_MAX + u_offset), u_count)
 
 
-def accumulate_classes(hist, flow, u_offset=U_OFFSET, u_count=U_COUNT):
+def accumulate_classes(hist, flow, u_offset=U_OFFSET, u_count=U_COUNT, axes=(0, 1)):
     """Detection weight ``N[gradient class, ψ, β, u, category]`` (see :func:`accumulate`)."""
     hist = np.asarray(hist)
     bins = ORIENTATION_BINS
-    return np.stack([accumulate(hist[..., c * bins:(c + 1) * bins], flow, u_offset, u_count)
+    return np.stack([accumulate(hist[..., c * bins:(c + 1) * bins], flow, u_offset, u_count, axes)
                      for c in range(hist.shape[-1] // bins)])
 
 
@@ -346,9 +378,10 @@ def class_tables(Nc):
     return P, tot, P_all
 
 
-def accumulate(hist, flow, u_offset=U_OFFSET, u_count=U_COUNT):
+def accumulate(hist, flow, u_offset=U_OFFSET, u_count=U_COUNT, axes=(0, 1)):
     """Detection weight ``N[ψ, β, u, category]`` from histograms with known flow (the
-    gradient-strength classes summed).
+    gradient-strength classes summed), summed over the histogram ``axes`` (one group of
+    :data:`AXIS_GROUPS`; ``hist`` holds those axes' rows only).
 
     ``category = 2·scale_index + (0 if the code's sign agrees with sign(c) else 1)``;
     every histogram bin is spread over the 8 surrounding grid nodes (trilinear weights).
@@ -357,7 +390,7 @@ def accumulate(hist, flow, u_offset=U_OFFSET, u_count=U_COUNT):
     hist = hist.reshape(*hist.shape[:3], -1, ORIENTATION_BINS).sum(axis=3)  # the classes summed
     flow = np.asarray(flow, np.float64)
     n_frames, _, n_codes, n_bins = hist.shape
-    normals, n_axis, psi = crossing_geometry()
+    normals, n_axis, psi = crossing_geometry(axes)
     vn = np.einsum("fj,abj->fab", flow, normals)  # normal speed
     speed = np.maximum(np.hypot(flow[:, 0], flow[:, 1]), 1e-9)[:, None, None]
     c = vn / n_axis
@@ -445,11 +478,14 @@ def _frame_chunks(data, model: str, params, samples: int, chunk: int = FIT_CHUNK
 
 
 def fit_main(data, write, model="paper", ground="edges"):
-    params = model_params(model)
+    diagonal = has_diagonal(data)
+    params = model_params(model, diagonal)
     samples = params.contrast_samples(320, 240)  # collect renders 320x240
     u_offset, u_count = U_GRID[model]
     edges = CONTRAST_EDGES[model]
-    counts = [None] * (len(edges) + 1)  # detection weight per contrast class
+    groups = AXIS_GROUPS if diagonal else AXIS_GROUPS[:1]
+    # detection weight per axis group and contrast class
+    counts = [[None] * (len(edges) + 1) for _ in groups]
     frames = [0] * (len(edges) + 1)
     for hist, flow, g in _frame_chunks(data, model, params, samples):
         cls = np.searchsorted(np.asarray(edges, np.float64), g, side="right")
@@ -457,39 +493,46 @@ def fit_main(data, write, model="paper", ground="edges"):
             m = cls == c
             if not m.any():
                 continue
-            Nc = accumulate_classes(hist[m], flow[m], u_offset, u_count)
-            counts[c] = Nc if counts[c] is None else counts[c] + Nc
+            for j, axes in enumerate(groups):
+                Nc = accumulate_classes(hist[m][:, list(axes)], flow[m], u_offset, u_count, axes)
+                counts[j][c] = Nc if counts[j][c] is None else counts[j][c] + Nc
             frames[c] += int(m.sum())
         del hist, flow, g
-    Ps, tots, P_all = [], [], []
-    filled_classes = [c for c, Nc in enumerate(counts) if Nc is not None]
-    for c, Nc in enumerate(counts):
-        print(f"contrast class {c}: {frames[c]} frames")
-        if Nc is None and ground != "edges" and filled_classes:
-            # a ground table may lack a contrast class (no thin-line ground as rough as
-            # gravel): the nearest class with flights stands in for it
-            near = min(filled_classes, key=lambda k: abs(k - c))
-            print(f"  no frames: contrast class {near}'s distributions stand in")
-            Nc = counts[near]
-        if Nc is None:
-            raise SystemExit(f"no calibration frames in contrast class {c} (edges {edges})")
-        P, tot, P_all_c = class_tables(Nc)
-        P_all.append(P_all_c)
-        filled = (tot >= MIN_CELL_WEIGHT).mean(axis=(2, 3))
-        for k, row in enumerate(filled):
-            print(f"  gradient class {k}: filled share per ψ node:", " ".join(f"{x:.2f}" for x in row))
-        Ps.append(P)
-        tots.append(tot)
-    P, tot = (Ps[0], tots[0]) if not edges else (np.stack(Ps), np.stack(tots))
-    prob_all = P_all[0] if not edges else np.stack(P_all)
-    out = calibration_path(model, ground)
-    if write:
+    arrays = {}
+    for j, (axes, group_counts) in enumerate(zip(groups, counts)):
+        suffix = "" if j == 0 else "_diagonal"
+        Ps, tots, P_all = [], [], []
+        filled_classes = [c for c, Nc in enumerate(group_counts) if Nc is not None]
+        for c, Nc in enumerate(group_counts):
+            print(f"axes {axes}, contrast class {c}: {frames[c]} frames")
+            if Nc is None and ground != "edges" and filled_classes:
+                # a ground table may lack a contrast class (no thin-line ground as rough as
+                # gravel): the nearest class with flights stands in for it
+                near = min(filled_classes, key=lambda k: abs(k - c))
+                print(f"  no frames: contrast class {near}'s distributions stand in")
+                Nc = group_counts[near]
+            if Nc is None:
+                raise SystemExit(f"no calibration frames in contrast class {c} (edges {edges})")
+            P, tot, P_all_c = class_tables(Nc)
+            P_all.append(P_all_c)
+            filled = (tot >= MIN_CELL_WEIGHT).mean(axis=(2, 3))
+            for k, row in enumerate(filled):
+                print(f"  gradient class {k}: filled share per ψ node:", " ".join(f"{x:.2f}" for x in row))
+            Ps.append(P)
+            tots.append(tot)
+        P, tot = (Ps[0], tots[0]) if not edges else (np.stack(Ps), np.stack(tots))
+        prob_all = P_all[0] if not edges else np.stack(P_all)
         if GRADIENT_CLASS_TABLES[model]:
-            extra = {"gradient_class_steps": np.asarray(GRADIENT_CLASS_STEPS, np.int64),
-                     "prob_all": prob_all.astype(np.float32)}
+            arrays["prob_all" + suffix] = prob_all.astype(np.float32)
         else:  # one distribution for all classes (the summary sums the histogram's classes)
-            extra = {}
             P, tot = prob_all, tot.sum(axis=-4)
+        arrays["prob" + suffix] = P.astype(np.float32)
+        arrays["weight" + suffix] = tot.astype(np.float32)
+    out = calibration_path(model, ground, diagonal)
+    if write:
+        extra = {}
+        if GRADIENT_CLASS_TABLES[model]:
+            extra["gradient_class_steps"] = np.asarray(GRADIENT_CLASS_STEPS, np.int64)
         if model != "paper":
             extra.update(channels=np.array(params.channels, np.int64),
                          threshold_mode=np.array(params.threshold_mode), model=np.array(model))
@@ -498,10 +541,9 @@ def fit_main(data, write, model="paper", ground="edges"):
         if ground != "edges":
             extra.update(ground=np.array(ground))
         np.savez_compressed(
-            out, prob=P.astype(np.float32), psi_nodes_deg=np.asarray(PSI_NODES_DEG),
+            out, **arrays, psi_nodes_deg=np.asarray(PSI_NODES_DEG),
             beta_nodes=np.asarray(BETA_NODES), u_nodes=u_nodes(u_offset, u_count),
-            u_offset=np.float64(u_offset), weight=tot.astype(np.float32),
-            speeds=np.array(params.speeds, np.float64), **extra,
+            u_offset=np.float64(u_offset), speeds=np.array(params.speeds, np.float64), **extra,
         )
         print(f"wrote {out}")
         write_misfit(data, model, out, ground=ground)
@@ -526,7 +568,7 @@ def misfit_baseline(data, model: str, frames: int = MISFIT_FRAMES, seed: int = M
     from emdflow.reference import STAT_FIRST_CHANGED
     from emdflow.summary import SummaryOptions, calibration_for
 
-    params = model_params(model)
+    params = model_params(model, has_diagonal(data))
     if calibration_for(params, ground) is None:
         # summarize() would read another table and the baseline would be that table's
         raise SystemExit(f"misfit baseline: the {model!r} model has no {ground} table to measure")
@@ -572,7 +614,7 @@ def write_misfit(data, model: str, path: Path | None = None, ground: str = "edge
     for ``ground`` (``path``: another copy of it)."""
     import emdflow.summary as summary
 
-    path = calibration_path(model, ground) if path is None else Path(path)
+    path = calibration_path(model, ground, has_diagonal(data)) if path is None else Path(path)
     with np.load(path) as z:
         table = {k: z[k] for k in z.files if k not in ("misfit_speeds", "misfit_baseline")}
     # the summary reads the tables as they are on disk now (the deviance does not depend
@@ -613,7 +655,7 @@ def _directions(offset, random_set, speeds=EVALUATION_SPEEDS, textures=EVALUATIO
 def render_evaluation(offset: float = 0.0, random_set: bool = False, frames: int = 6,
                       backend: str = "opencl", width=320, height=240, model: str = "paper",
                       contrast: float = 1.0, drift: float = 0.0, evidence_row_step: int = 0,
-                      noise: float = 2.0, textures=EVALUATION_TEXTURES):
+                      noise: float = 2.0, textures=EVALUATION_TEXTURES, diagonal: bool = True):
     """Flights over the evaluation textures: the model's speeds (9 for the paper's model,
     10 from 0.25 px/frame for the extended one) × 4 textures × 8 directions (multiples of
     45° plus ``offset`` radians, or random directions), sensor noise σ = ``noise`` gray
@@ -627,7 +669,7 @@ def render_evaluation(offset: float = 0.0, random_set: bool = False, frames: int
     from emdflow import FlowEstimator
     from emdflow.synthetic import CameraFlight, load_texture
 
-    est = FlowEstimator(width, height, backend=backend, **MODELS[model],
+    est = FlowEstimator(width, height, backend=backend, **model_options(model, diagonal),
                         evidence_row_step=evidence_row_step)
     warm = est.params.history_frames
     speeds = MODEL_EVALUATION_SPEEDS[model]
@@ -722,7 +764,8 @@ def _stored_fields(data):
 
     h, w = (int(x) for x in data["shape"])
     codes = np.zeros((h, w), np.int8)
-    params = EngineParams(**MODELS[str(data["model"]) if "model" in data else "paper"])
+    params = EngineParams(**model_options(str(data["model"]) if "model" in data else "paper",
+                                          np.asarray(data["hist"]).shape[1] == 4))
     fields = [FlowField(codes, codes, st, hi, params, int(data["frame_index"]))
               for hi, st in zip(data["hist"], data["stats"])]
     return fields, np.asarray(data["flow"], np.float64)
@@ -864,9 +907,10 @@ def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: 
              save: str | None = None, data: str | None = None, model: str = "paper",
              contrast: float = 1.0, drift: float = 0.0, options=None, evidence_row_step: int = 0,
              width: int = 320, height: int = 240, noise: float = 2.0,
-             textures=EVALUATION_TEXTURES):
+             textures=EVALUATION_TEXTURES, diagonal: bool = True):
     """Render (or load with ``data``) the evaluation flights (``width`` × ``height`` frames,
-    over ``textures``) and :func:`score` them."""
+    over ``textures``; ``diagonal``: with the diagonal detectors' evidence, the default) and
+    :func:`score` them."""
     if data:
         with np.load(data) as z:
             flights = {k: z[k] for k in z.files}
@@ -875,7 +919,7 @@ def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: 
         flights = render_evaluation(offset, random_set, frames, backend, width, height, model=model,
                                     contrast=contrast, drift=drift,
                                     evidence_row_step=evidence_row_step, noise=noise,
-                                    textures=textures)
+                                    textures=textures, diagonal=diagonal)
         label = "random directions" if random_set else f"offset {offset} rad"
         if (width, height) != (320, 240):
             label += f", {width}x{height}"
@@ -888,6 +932,8 @@ def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: 
             label += f", noise sigma {noise:g}"
         if evidence_row_step:
             label += f", evidence every {evidence_row_step} row(s)"
+        if not diagonal:
+            label += ", without diagonal evidence"
         if tuple(textures) != EVALUATION_TEXTURES:
             label += f", over {','.join(textures)}"
         if save:
@@ -916,6 +962,9 @@ def main(argv=None):
     c.add_argument("--evidence-row-step", type=int, default=0,
                    help="rows between the rows that feed the histograms (EngineParams; default "
                         "0: automatic)")
+    c.add_argument("--diagonal-evidence", action=argparse.BooleanOptionalAction, default=True,
+                   help="with (default) or without the diagonal detectors' evidence (EngineParams."
+                        "diagonal_evidence; without: the horizontal and vertical detectors' tables)")
     c.add_argument("--noise-range", default="1,3",
                    help="sensor noise range lo,hi of the flights, gray levels (uniform; default "
                         "1,3, as the committed tables were made)")
@@ -958,6 +1007,9 @@ def main(argv=None):
     e.add_argument("--evidence-row-step", type=int, default=0,
                    help="rows between the rows that feed the summary's evidence (EngineParams; "
                         "default 0: automatic, every 4th row at 240 px)")
+    e.add_argument("--diagonal-evidence", action=argparse.BooleanOptionalAction, default=True,
+                   help="with (default) or without the diagonal detectors' evidence (EngineParams."
+                        "diagonal_evidence; without: the horizontal and vertical detectors' tables)")
     e.add_argument("--size", default="320x240",
                    help="frame size WxH of the flights (default 320x240, the size the tables "
                         "were calibrated at)")
@@ -984,7 +1036,8 @@ def main(argv=None):
                 scale_range=tuple(float(x) for x in a.scale_range.split(",")), model=a.model,
                 contrast_range=(tuple(float(x) for x in a.contrast_range.split(","))
                                 if a.contrast_range else None),
-                evidence_row_step=a.evidence_row_step, noise_range=noise_range)
+                evidence_row_step=a.evidence_row_step, noise_range=noise_range,
+                diagonal=a.diagonal_evidence)
     elif a.cmd == "fit":
         fit_main(a.data, a.write, a.model, a.ground)
     elif a.cmd == "misfit":
@@ -1018,7 +1071,8 @@ def main(argv=None):
             except ValueError as exc:
                 ap.error(f"--textures: {exc}")
         evaluate(a.offset, a.random, a.frames, a.backend, a.save, a.data, a.model, a.contrast,
-                 a.drift, options, a.evidence_row_step, width, height, a.noise, textures)
+                 a.drift, options, a.evidence_row_step, width, height, a.noise, textures,
+                 a.diagonal_evidence)
 
 
 if __name__ == "__main__":

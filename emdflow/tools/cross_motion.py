@@ -18,8 +18,8 @@ ground and ``U`` it prints
 - what the summary reads: ``U`` and ``V`` (medians over the frames), the median direction
   error and quality, and the share of frames with quality 0 (they read flow 0 and count
   as 180° off, as in ``calibrate_summary evaluate``);
-- the ``V`` it reads from the horizontal axis's detections alone (the vertical axis's taken
-  out of the histogram): how much of the reading the vertical axis still carries. At
+- the ``V`` it reads from the horizontal axis's detections alone (the vertical and the
+  diagonal axes' taken out of the histogram): how much of the reading the others carry. At
   ``U`` = 0 the horizontal axis is not the major one; its reading is still printed, as the
   baseline of what that axis says about ``V`` alone.
 
@@ -94,7 +94,7 @@ def evaluate(*, model: str = "extended", textures=DEFAULT_TEXTURES, minor: float
     summary's median ``U`` and ``V`` (``read_u``, ``read_v``; a quality-0 frame reads 0),
     median direction error (``direction_error_deg``; a quality-0 frame counts 180°),
     median quality, share of quality-0 frames (``blind``) and median ``V`` from the same
-    frames with the vertical axis's detections taken out (``major_only_v``).
+    frames with the vertical and diagonal axes' detections taken out (``major_only_v``).
     ``estimator``: a :class:`emdflow.FlowEstimator` of ``width`` × ``height`` to use
     instead of one made from ``model`` and ``backend``."""
     import emdflow
@@ -141,7 +141,7 @@ def evaluate(*, model: str = "extended", textures=DEFAULT_TEXTURES, minor: float
                     errors.append(_frame_error(s, *flow)[1])  # quality 0: 180°
                     quality.append(s.quality)
                     hist = field.histogram.copy()
-                    hist[1] = 0
+                    hist[1:] = 0  # (and the diagonals, with diagonal evidence)
                     alone = emdflow.summarize(FlowField(
                         no_codes, no_codes, field.stats, hist, params, field.frame_index,
                         positions=field.positions, exposure_step=field.exposure_step))
