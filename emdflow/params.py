@@ -197,7 +197,8 @@ class EngineParams:
         Compute the summary's evidence next to the detector (default True): the
         orientation and position histograms that :func:`emdflow.summarize` and
         :func:`emdflow.cues.looming_cues` read. False gives the dense field (``u``, ``v``)
-        and the frame's counters only, 16–20 % faster at 640×480 (README, "Speed"), for a
+        and the frame's counters only, 16–20 % faster at 640×480 (24–29 % with the
+        diagonal evidence; README, "Speed"), for a
         caller that never summarises (a researcher's dense flow); those two functions then
         refuse the field, and so do the command-line tools, which summarise every frame.
         The detections do not change.
@@ -212,9 +213,9 @@ class EngineParams:
         slides the ground sideways under its receptors: over granular ground the minor
         axis of a fast oblique flow goes blind, while the diagonal nearest the flow sees
         it with little sideways motion. The paper's model on random flights at 320×240:
-        6.3 % / 1.96° median error instead of 8.9 % / 2.37°, for 10–15 % more engine time
-        at 640×480 (README, "Diagonal evidence"). False gives the former evidence and
-        tables.
+        6.3 % / 1.96° median error instead of 8.9 % / 2.37°, for 9–16 % more engine time
+        at 640×480 (README, "Diagonal evidence" and "The diagonal evidence's cost"). False
+        gives the former evidence and tables.
     """
 
     scales: tuple[int, ...] = (1, 3, 5, 7, 9, 11, 13)

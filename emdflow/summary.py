@@ -1069,6 +1069,10 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
     if not isinstance(field, FlowField):
         raise TypeError(f"summarize() takes a FlowField, not {type(field).__name__}")
     field.require_evidence("summarize()")
+    if field.histogram.shape[0] != field.params.evidence_axes:
+        raise ValueError(f"summarize(): the field's histogram has {field.histogram.shape[0]} detector axes, "
+                         f"its parameters ({'with' if field.params.diagonal_evidence else 'without'} "
+                         f"diagonal_evidence) {field.params.evidence_axes}")
     if not field.ready or field.exposure_step:
         return _BLIND  # no history yet, or a global brightness step is in the templates
     textured = field.textured_fraction

@@ -76,7 +76,7 @@ class EngineConfig:
                                   doc="rows between the rows feeding the summary (0: automatic)")
     # detectors along the two diagonals feed the summary (not the dense field): a fast
     # oblique flight over rough ground no longer blinds its minor axis (README, "Diagonal
-    # evidence"); false saves ~10-15 % of the engine time at 640x480 for that accuracy
+    # evidence"); false saves ~9-16 % of the engine time at 640x480 for that accuracy
     diagonal_evidence: bool = _opt(True, doc="diagonal detectors in the summary's evidence")
 
     def estimator_options(self) -> dict:

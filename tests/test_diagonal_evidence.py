@@ -94,5 +94,5 @@ def test_the_diagonals_see_the_minor_axis_of_a_fast_oblique_flight():
         rows = evaluate(model="paper", textures=("gravel", "brick"), majors=(8.0,), flights=8, estimator=est)
         errors[diagonal] = {r["texture"]: r["direction_error_deg"] for r in rows}
     for texture in ("gravel", "brick"):
-        assert errors[False][texture] > 6.0  # the blind minor axis (README: 9.6-13.6° there)
+        assert errors[False][texture] > 6.0  # the blind minor axis (paper's model: 9.7° and 13.5°)
         assert errors[True][texture] < 0.7 * errors[False][texture], (texture, errors)

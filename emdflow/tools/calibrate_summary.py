@@ -11,7 +11,12 @@ that table on a grid (trilinear soft binning of every histogram bin).
 
 Steps (all deterministic; the committed table is exactly what these commands write; the
 extended model's table below matches in every array but the misfit baseline, which a
-re-fit on another host reproduced to 4e-16)::
+re-fit on another host reproduced to 4e-16). ``collect`` flies with the diagonal
+detectors' evidence (``EngineParams.diagonal_evidence``, the default), and ``fit`` sees it
+in the files and writes the ``…_diagonal.npz`` table, whose axis distributions (``prob``)
+are those of the table without it, plus the diagonals' (``prob_diagonal``); the former
+tables, ``summary_calibration[_extended][_lines].npz``, which ``diagonal_evidence=False``
+reads, are what the same commands write with ``collect --no-diagonal-evidence``::
 
     # 1. fly the camera over the CALIBRATION textures and store the raw histograms
     #    (OpenCL backend, 320x240; ~1.5 and ~3 minutes on two cores)
@@ -186,19 +191,29 @@ def model_params(model: str, diagonal: bool = True):
     return EngineParams(**model_options(model, diagonal))
 
 
+def _stored_shape(path, name: str) -> tuple[int, ...]:
+    """Shape of the array ``name`` in the ``.npz`` file ``path``, from its header alone (an
+    extended calibration file's histograms are ~1 GB when decompressed)."""
+    import zipfile
+
+    with zipfile.ZipFile(path) as z, z.open(name + ".npy") as f:
+        fmt = np.lib.format
+        header = fmt.read_array_header_1_0 if fmt.read_magic(f) == (1, 0) else fmt.read_array_header_2_0
+        return header(f)[0]
+
+
 def has_diagonal(data) -> bool:
     """Whether the stored flights ``data`` (paths) carry the diagonal detectors' histogram
     axes (all of them, or none: SystemExit on a mixture)."""
     kinds = set()
     for path in data:
-        with np.load(path) as d:
-            kinds.add(d["hist"].shape[1] == 4)
+        kinds.add(_stored_shape(path, "hist")[1] == 4)
     if len(kinds) > 1:
         raise SystemExit("the calibration files mix flights with and without diagonal evidence")
     return kinds == {True}
 
 
-def calibration_path(model: str, ground: str = "edges", diagonal: bool = False) -> Path:
+def calibration_path(model: str, ground: str = "edges", diagonal: bool = True) -> Path:
     """Where ``fit --write`` stores the table of ``model`` for ``ground`` (summary.py finds
     it there): ``summary_calibration[_<model>][_lines][_diagonal].npz``."""
     name = "summary_calibration" + ("" if model == "paper" else f"_{model}")
@@ -386,7 +401,7 @@ def accumulate(hist, flow, u_offset=U_OFFSET, u_count=U_COUNT, axes=(0, 1)):
     ``category = 2·scale_index + (0 if the code's sign agrees with sign(c) else 1)``;
     every histogram bin is spread over the 8 surrounding grid nodes (trilinear weights).
     """
-    hist = np.asarray(hist, np.float64)  # (frames, 2, codes, classes · 64)
+    hist = np.asarray(hist, np.float64)  # (frames, axes of the group, codes, classes · 64)
     hist = hist.reshape(*hist.shape[:3], -1, ORIENTATION_BINS).sum(axis=3)  # the classes summed
     flow = np.asarray(flow, np.float64)
     n_frames, _, n_codes, n_bins = hist.shape
