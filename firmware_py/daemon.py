@@ -561,12 +561,18 @@ class Daemon:
             self._warn_of_a_wide_lens()
 
     def _warm_up(self, t0: float) -> None:
-        """Run the engine on blank frames once: kernels are built and buffers allocated
-        before READY=1, not on the first camera frame (seconds on PoCL)."""
+        """Run the engine on blank frames once and load the summary's tables: kernels are
+        built, buffers allocated and tables laid out before READY=1, not on the first
+        camera frames (seconds on PoCL; the tables ~1 s)."""
         blank = np.zeros((self.height, self.width), np.uint8)
         for _ in range(2):
             _summarize(self.estimator.update(blank))
         self.estimator.reset()
+        # (a blank frame never reaches the likelihood fit, so this does not happen above;
+        # an engine stand-in without parameters, in tests, has no tables either)
+        params = getattr(self.estimator, "params", None)
+        if params is not None:
+            emdflow.summary.prepare(params)
         log.info("engine %s %dx%d ready in %.2f s%s", self.config.engine.backend, self.width, self.height,
                  time.monotonic() - t0, _on_device(self.estimator))
 

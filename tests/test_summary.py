@@ -895,3 +895,27 @@ def test_margin_sweep_scores_stored_flights(monkeypatch, tmp_path, capsys):
     assert "--ground" in capsys.readouterr().err
     with pytest.raises(SystemExit, match="the 'paper' model has no lines table"):
         cs.misfit_baseline([out], "paper", ground="lines")
+
+
+def test_prepare_lays_out_the_tables_before_the_first_frame(monkeypatch):
+    """``emdflow.summary.prepare(params)`` builds every likelihood model the summary will
+    read for those parameters (edge and line-ground tables, all contrast classes), so the
+    first frame with evidence builds none (the daemon calls it in its warm-up: laying out
+    the extended model's tables took ~1 s, a second of dropped frames)."""
+    import emdflow.summary as summary
+
+    params = EngineParams(**EXTENDED)
+    summary._MODEL_CACHE.clear()
+    summary.prepare(params)
+    edges, lines = (summary._MODEL_CACHE[(params, 60.0, 0.01, g)] for g in ("edges", "lines"))
+    assert edges is not None and lines is not None
+
+    def no_new_model(*args, **kwargs):
+        raise AssertionError("summarize() laid out a table after prepare()")
+
+    monkeypatch.setattr(summary, "_LikelihoodModel", no_new_model)
+    flight = CameraFlight("brick", width=W, height=H, flow=(4.0, -2.0), noise_sigma=2.0, seed=1)
+    est = emdflow.FlowEstimator(W, H, **EXTENDED)
+    for t in range(params.history_frames + 2):
+        s = summarize(est.update(flight.render(t)))
+    assert s.quality > 0
