@@ -31,7 +31,7 @@ import numbers
 
 import numpy as np
 
-__all__ = ["EngineParams", "gaussian_weights", "ORIENTATION_BINS", "GRADIENT_CLASS_STEPS",
+__all__ = ["EngineParams", "gaussian_weights", "ORIENTATION_BINS", "EVIDENCE_AXIS_STEPS", "GRADIENT_CLASS_STEPS",
            "HISTOGRAM_BINS", "MODELS"]
 
 #: Named detector models: the ``FlowEstimator`` keywords of each. ``"paper"`` is the
@@ -51,6 +51,10 @@ MODELS = {
 
 #: Orientation bins over 180° used to summarise the gradient direction of detections.
 ORIENTATION_BINS = 64
+#: Detector step ``B − A`` per scale unit (x right, y down) of each axis of the summary's
+#: detection histogram: horizontal, vertical and, with ``diagonal_evidence``, the two
+#: diagonals (the engine's detectors, the summary's geometry and the calibration's).
+EVIDENCE_AXIS_STEPS = ((1, 0), (0, 1), (1, 1), (1, -1))
 #: Gradient-strength classes of a detection: its class counts the steps ``m`` with
 #: ``|∇R_k|₁ ≥ (m / 2) · 2θk²``, i.e. ``512 (|gx| + |gy|) ≥ m · 2 θ_q k²`` (exact integers;
 #: with brightness compensation ``2 · gain_q`` instead of 512, the channel's exposure gain
@@ -439,3 +443,16 @@ class EngineParams:
     def orientation_centres() -> np.ndarray:
         """Centre angle of each orientation bin, radians in [0, π)."""
         return (np.arange(ORIENTATION_BINS) + 0.5) * math.pi / ORIENTATION_BINS
+
+    @staticmethod
+    def crossing_geometry(axes) -> tuple[np.ndarray, np.ndarray]:
+        """Per (histogram axis of ``axes``, orientation bin): the bin-centre normal's signed
+        component ``n_a`` along the axis's detector step (:data:`EVIDENCE_AXIS_STEPS`;
+        ``c = n·F / n_a`` is then the crossing speed in steps per frame: px along an axis,
+        (1, ±1) steps along a diagonal) and ψ, the angle between the normal and the step,
+        in degrees. Shapes (len(axes), ORIENTATION_BINS)."""
+        phi = EngineParams.orientation_centres()
+        steps = np.asarray([EVIDENCE_AXIS_STEPS[a] for a in axes], np.float64)
+        n_axis = steps[:, :1] * np.cos(phi) + steps[:, 1:] * np.sin(phi)
+        length = np.hypot(steps[:, 0], steps[:, 1])[:, None]
+        return n_axis, np.degrees(np.arccos(np.clip(np.abs(n_axis) / length, 0.0, 1.0)))

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .params import ORIENTATION_BINS, EngineParams
+from .params import EVIDENCE_AXIS_STEPS, ORIENTATION_BINS, EngineParams
 
 __all__ = [
     "DIRECTIONS",
@@ -387,7 +387,7 @@ def summary_statistics(
         ks = np.array([channels[c][0] for c in range(len(channels))])[chan]
         ds = np.array([channels[c][1] for c in range(len(channels))])[chan]
         step = np.where(negative, -ks, ks)
-        ex, ey = DIRECTIONS[EVIDENCE_AXES[axis][0]]  # B = A ± k (ex, ey)
+        ex, ey = EVIDENCE_AXIS_STEPS[axis]  # B = A ± k (ex, ey)
         bx = xs + ex * step
         by = ys + ey * step
         gxs = np.zeros(ys.size, np.int64)

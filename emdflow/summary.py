@@ -561,13 +561,11 @@ class _LikelihoodModel:
         n_axes = params.evidence_axes
         nx = np.tile(cos, n_axes)
         ny = np.tile(sin, n_axes)
-        # signed axis component of the normal, per detector step: a diagonal detector's
-        # step is (1, ±1), so its crossing speed c = n·F / (n_x ± n_y) is in steps per
-        # frame, the unit its channels fire in (scale k at about k steps per frame)
-        na = np.concatenate([cos, sin, cos + sin, cos - sin][:n_axes])
-        step_length = np.repeat([1.0, 1.0, math.sqrt(2.0), math.sqrt(2.0)][:n_axes], phi.size)
-        diagonal = np.repeat([False, False, True, True][:n_axes], phi.size)
-        psi = np.degrees(np.arccos(np.clip(np.abs(na) / step_length, 0.0, 1.0)))
+        # signed component of the normal along each axis's detector step: a diagonal
+        # detector's step is (1, ±1), so its crossing speed c = n·F / (n_x ± n_y) is in
+        # steps per frame, the unit its channels fire in (scale k at about k steps a frame)
+        na, psi = (a.ravel() for a in EngineParams.crossing_geometry(range(n_axes)))
+        diagonal = np.repeat(np.arange(n_axes) >= 2, phi.size)
         self.rows = rows = np.nonzero(psi < max_axis_angle)[0]
         self.n_base = n_rows = rows.size
         i = np.clip(np.searchsorted(psi_nodes, psi, side="right") - 1, 0, len(psi_nodes) - 2)

@@ -26,6 +26,18 @@ def diagonal_edge_frames(width, height, k, sx, sy, bright_ahead, frames):
     return out
 
 
+def test_the_axes_have_one_step_everywhere():
+    """The reference's detectors of each histogram axis step by the axis's step, the one
+    the summary's and the calibration's geometry read (``EVIDENCE_AXIS_STEPS``)."""
+    from emdflow.reference import DIRECTIONS, EVIDENCE_AXES
+    from emdflow.params import EVIDENCE_AXIS_STEPS
+
+    for axis, (positive, negative) in enumerate(EVIDENCE_AXES):
+        assert DIRECTIONS[positive] == EVIDENCE_AXIS_STEPS[axis]
+        assert DIRECTIONS[negative] == tuple(-v for v in EVIDENCE_AXIS_STEPS[axis])
+    assert {DIRECTIONS[p] for p, _ in EVIDENCE_AXES[2:]} == set(DIAGONALS) & {(1, 1), (1, -1)}
+
+
 @pytest.mark.parametrize("direction", list(DIAGONALS), ids=lambda d: f"{d[0]:+d}{d[1]:+d}")
 @pytest.mark.parametrize("k", [1, 3, 5])
 def test_an_edge_moving_along_a_diagonal_fires_that_diagonal_at_its_speed(direction, k):

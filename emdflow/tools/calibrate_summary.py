@@ -346,9 +346,6 @@ GRADIENT_CLASS_TABLES = {"paper": False, "extended": True}
 MIN_CELL_WEIGHT = 100.0
 
 
-#: The detector step of each histogram axis (x right, y down): horizontal, vertical and
-#: the two diagonals of ``EngineParams.diagonal_evidence``.
-AXIS_STEPS = ((1, 0), (0, 1), (1, 1), (1, -1))
 #: The axes that share a table: the horizontal and vertical detectors', and the diagonals'.
 AXIS_GROUPS = ((0, 1), (2, 3))
 
@@ -357,17 +354,14 @@ def crossing_geometry(axes=(0, 1)):
     """Per (axis, orientation bin) of ``axes``: unit normal (axes, 64, 2), the normal's
     signed component along the detector's step ``n_a`` (``c = n·F / n_a`` is then the
     crossing speed in steps per frame: px along an axis, (1, ±1) steps along a diagonal)
-    and ψ, the angle between the normal and the step, in degrees."""
+    and ψ, the angle between the normal and the step, in degrees
+    (:meth:`EngineParams.crossing_geometry`, which the summary reads too)."""
     from emdflow.params import EngineParams
 
     phi = EngineParams.orientation_centres()
     n = np.stack([np.cos(phi), np.sin(phi)], axis=1)  # (64, 2)
-    steps = np.asarray([AXIS_STEPS[a] for a in axes], np.float64)  # (axes, 2)
-    normals = np.stack([n] * len(axes))  # (axis, bin, 2)
-    n_axis = steps @ n.T  # (axis, bin), signed
-    length = np.hypot(steps[:, 0], steps[:, 1])[:, None]
-    psi = np.degrees(np.arccos(np.clip(np.abs(n_axis) / length, 0.0, 1.0)))
-    return normals, n_axis, psi
+    n_axis, psi = EngineParams.crossing_geometry(axes)
+    return np.stack([n] * len(axes)), n_axis, psi
 
 
 def u_nodes(u_offset=U_OFFSET, u_count=U_COUNT):
@@ -509,7 +503,9 @@ def fit_main(data, write, model="paper", ground="edges"):
             if not m.any():
                 continue
             for j, axes in enumerate(groups):
-                Nc = accumulate_classes(hist[m][:, list(axes)], flow[m], u_offset, u_count, axes)
+                # (a group's axes are neighbours: one copy of the class's frames, its axes only)
+                group_hist = hist[m, axes[0]:axes[-1] + 1]
+                Nc = accumulate_classes(group_hist, flow[m], u_offset, u_count, axes)
                 counts[j][c] = Nc if counts[j][c] is None else counts[j][c] + Nc
             frames[c] += int(m.sum())
         del hist, flow, g
