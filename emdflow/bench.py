@@ -341,8 +341,9 @@ def _check_arguments(parser: argparse.ArgumentParser, args) -> dict:
                                ("--warmup", args.warmup, 0)):
         if value < low:  # (0 blocks: no median; 0 frames per block: a division by zero)
             parser.error(f"{option} {value}: must be at least {low}")
-    if not math.isfinite(args.drift):
-        parser.error(f"--drift {args.drift:g}: must be a finite number")
+    if not (math.isfinite(args.drift) and args.drift > -1.0):
+        # (the exposure factor 1 + drift reaches 0 at -1: a black clip)
+        parser.error(f"--drift {args.drift:g}: must be a finite number > -1 (relative exposure change)")
     for w, h in args.sizes:
         problem = frame_size_problem(w, h, dis=not args.stages, dis_role=" (one of the methods timed)")
         if problem:

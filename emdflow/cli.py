@@ -45,18 +45,34 @@ def _add_video_io_arguments(p: argparse.ArgumentParser, codec_help: str) -> None
 def _open_input(args):
     """``(frames, fps)`` of INPUT after the options ``flow`` and ``render`` share are checked
     (a bad ``--fps`` or ``--size``, an output that would overwrite the input: ToolError 2)."""
-    from emdflow.tools import ToolError, check_positive
+    from emdflow.tools import ToolError, check_count, check_positive, refuse_overwrite
     from emdflow.tools.video_io import open_frames, parse_size
 
     check_positive("--fps", args.fps, "frames/s")
+    check_count("--max-frames", args.max_frames)
     try:
         size = parse_size(args.size) if args.size else None
     except ValueError as e:
         raise ToolError(f"--size: {e}", 2) from None
-    if args.input and args.output and Path(args.input).resolve() == Path(args.output).resolve():
-        raise ToolError(f"{args.output}: output would overwrite the input", 2)
+    refuse_overwrite(args.input, args.output)
     source = open_frames(args.input, size=size, fps=args.fps, max_frames=args.max_frames)
     return source, source.fps or 30.0
+
+
+def _write_npz(file, store: dict, k: int, fps: float, speeds) -> None:
+    """``emdflow flow --npz``: the first ``k`` frames' dense fields and summaries."""
+    import numpy as np
+
+    np.savez_compressed(
+        file,
+        u=np.stack(store["u"][:k]),
+        v=np.stack(store["v"][:k]),
+        flow_x=np.asarray(store["flow_x"][:k], np.float32),
+        flow_y=np.asarray(store["flow_y"][:k], np.float32),
+        quality=np.asarray(store["quality"][:k], np.uint8),
+        fps=np.float64(fps),
+        speeds=np.asarray(speeds, np.float32),
+    )
 
 
 def _add_flow_arguments(p: argparse.ArgumentParser) -> None:
@@ -80,12 +96,13 @@ def run_flow(args) -> int:
     import numpy as np
 
     from emdflow import summarize
-    from emdflow.tools import ToolError, check_positive, make_estimator, missing_folder, progress_bar
+    from emdflow.tools import ToolError, check_count, check_positive, make_estimator, missing_folder, progress_bar
     from emdflow.tools.flo import write_flo
     from emdflow.tools.flowviz import render_flow_frame
     from emdflow.tools.video_io import VideoWriter
 
     check_positive("--max-flow", args.max_flow, "px/frame")
+    check_count("--upscale", args.upscale)
     for path in (args.npz, args.snapshot):
         if path and (problem := missing_folder(path)):
             raise ToolError(f"{path}: {problem}", 2)
@@ -137,16 +154,9 @@ def run_flow(args) -> int:
         source.close()
         k = min(len(x) for x in store.values()) if store is not None else 0
         if k:  # (an interrupt may land between the appends of one frame)
-            np.savez_compressed(
-                args.npz,
-                u=np.stack(store["u"][:k]),
-                v=np.stack(store["v"][:k]),
-                flow_x=np.asarray(store["flow_x"][:k], np.float32),
-                flow_y=np.asarray(store["flow_y"][:k], np.float32),
-                quality=np.asarray(store["quality"][:k], np.uint8),
-                fps=np.float64(fps),
-                speeds=np.asarray(est.params.speeds, np.float32),
-            )
+            # through a file object: given a name, numpy appends ".npz" to one without it
+            with open(args.npz, "wb") as npz_file:
+                _write_npz(npz_file, store, k, fps, est.params.speeds)
     if args.snapshot and n:
         import cv2
 

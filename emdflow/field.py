@@ -11,6 +11,7 @@ from .reference import (
     STAT_BRIGHTENING,
     STAT_FIRST_CHANGED,
     STAT_SATURATED,
+    STAT_STEP_CHANGED,
     STAT_TEXTURED,
     STAT_U_DETECTIONS,
     STAT_V_DETECTIONS,
@@ -158,9 +159,11 @@ class FlowField:
 
     @property
     def brightening_fraction(self) -> float:
-        """Share of the finest channel's nonzero states that are positive (0..1; 0.5 if none)."""
-        c = self.params.channels.index((self.params.scales[0], 1))
-        changed = int(self.stats[STAT_FIRST_CHANGED + c])
+        """Share of the finest one-frame channel's nonzero states that are positive (0..1;
+        0.5 if none): its states *before* brightness compensation, the ones the
+        exposure-step test reads (with compensation on, the channel's own states have a
+        gain step taken out and are counted apart, in :attr:`changed_fraction`)."""
+        changed = int(self.stats[STAT_STEP_CHANGED])
         return float(self.stats[STAT_BRIGHTENING]) / changed if changed else 0.5
 
     @property

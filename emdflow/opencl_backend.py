@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import math
+import numbers
 import os
 import struct
 import threading
@@ -105,25 +106,35 @@ def device_label(device) -> str:
 
 
 def _device_choice(device):
-    """The caller's device choice, else EMDFLOW_OPENCL_DEVICE's; None: automatic."""
-    choice = device if device is not None else os.environ.get("EMDFLOW_OPENCL_DEVICE")
-    return None if choice is None or choice == "" else choice
+    """The caller's device choice, else EMDFLOW_OPENCL_DEVICE's; None: automatic. A
+    choice is an index (an int, numpy's too, or a string of digits) or a name (a str);
+    anything else (True, 1.5, a list) is a TypeError rather than a guess."""
+    if device is not None:
+        if isinstance(device, numbers.Integral) and not isinstance(device, bool):
+            return int(device)
+        if not isinstance(device, str):
+            raise TypeError(f"device={device!r}: expected an index (int) or part of a device name (str)")
+        return device or None
+    choice = os.environ.get("EMDFLOW_OPENCL_DEVICE")
+    return choice or None
 
 
 def _pick_device(choice):
     """The device a non-automatic choice names: an index of ``list_devices()`` or a
     case-insensitive part of its "platform device" name."""
     devices = _all_devices()
-    if isinstance(choice, int) or (isinstance(choice, str) and choice.isdigit()):
+    # (the environment's choice is named as such in the errors: it is not in the call)
+    origin = "" if os.environ.get("EMDFLOW_OPENCL_DEVICE") != choice else " (EMDFLOW_OPENCL_DEVICE)"
+    if isinstance(choice, int) or choice.strip().isdigit():
         index = int(choice)
         if not 0 <= index < len(devices):
-            raise ValueError(f"OpenCL device index {index} out of range: {len(devices)} device(s) found")
+            raise ValueError(f"OpenCL device index {index}{origin} out of range: {len(devices)} device(s) found")
         return devices[index]
     for d in devices:
-        if str(choice).lower() in f"{d.platform.name} {d.name}".lower():
+        if choice.lower() in f"{d.platform.name} {d.name}".lower():
             return d
     names = ", ".join(device_label(d) for d in devices)
-    raise ValueError(f"OpenCL device {choice!r} not found among: {names}")
+    raise ValueError(f"OpenCL device {choice!r}{origin} not found among: {names}")
 
 
 def _int_arg_setter(kernel, probe_index: int):

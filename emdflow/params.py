@@ -281,6 +281,10 @@ class EngineParams:
         object.__setattr__(self, "delays", delays)
         dscales = tuple(sorted(set(_whole_numbers("delay_scales", self.delay_scales, "scales, e.g. (1,)"))))
         if delays[-1] > 1:  # (without delays above 1 they make no channel)
+            if not dscales:
+                # (they would make no channel, yet hold back the first field by their length)
+                raise ValueError(f"delays={delays} with delay_scales=(): the delays above 1 need a "
+                                 "scale to run at, e.g. delay_scales=(1,)")
             for k in dscales:
                 if k not in scales:
                     raise ValueError(f"delay_scales: {k} is not one of the scales {scales}")

@@ -221,6 +221,7 @@ EUVIP 2010; ``docs/spec/template-model.md`` §6 (facts the summary is built on).
 from __future__ import annotations
 
 import dataclasses
+import numbers
 import math
 from pathlib import Path
 
@@ -420,10 +421,45 @@ class SummaryOptions:
         if self.ground not in GROUNDS:
             raise ValueError(f"SummaryOptions(ground={self.ground!r}): expected one of "
                              f"{', '.join(map(repr, GROUNDS))}")
+        # each with the range it is meaningful in (a zero divides, a NaN spreads into
+        # every summary): (name, low, low inclusive, high, high inclusive)
+        ranges = (
+            ("min_textured", 0.0, True, 1.0, True), ("full_textured", 0.0, False, 1.0, True),
+            ("max_saturated", 0.0, True, 1.0, True), ("min_detections", 0, True, math.inf, False),
+            ("full_detections", 0, False, math.inf, False), ("static_changed", 0.0, True, 1.0, True),
+            ("huber_fraction", 0.0, False, math.inf, False), ("huber_floor", 0.0, False, math.inf, False),
+            ("iterations", 1, True, math.inf, False), ("guess_iterations", 1, True, math.inf, False),
+            ("max_axis_angle", 0.0, False, 90.0, True), ("outlier_probability", 0.0, False, 1.0, False),
+            ("overdispersion", 0.0, True, math.inf, False), ("quality_error", 0.0, False, math.inf, False),
+            ("row_exponent", 0.0, False, 1.0, True), ("misfit_weight", 0.0, True, math.inf, False),
+            ("line_ground_margin", -math.inf, False, math.inf, False),
+        )
+        for name, lo, lo_in, hi, hi_in in ranges:
+            value = getattr(self, name)
+            ok = (isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+                  and (value >= lo if lo_in else value > lo) and (value <= hi if hi_in else value < hi))
+            if not ok:
+                raise ValueError(f"SummaryOptions({name}={value!r}): expected a number "
+                                 f"{'≥' if lo_in else '>'} {lo:g}"
+                                 + (f" and {'≤' if hi_in else '<'} {hi:g}" if math.isfinite(hi) else ""))
+        if self.top_speed is not None and not (isinstance(self.top_speed, numbers.Real)
+                                               and math.isfinite(self.top_speed) and self.top_speed > 0):
+            raise ValueError(f"SummaryOptions(top_speed={self.top_speed!r}): expected None or a number > 0 "
+                             "(px/frame)")
 
 
 _DEFAULT_OPTIONS = SummaryOptions()
 _BLIND = FlowSummary()
+
+
+def _options(options) -> SummaryOptions:
+    """``options``, or the defaults for None; anything else is a TypeError (a dict of
+    options, say, is not taken for "no options")."""
+    if options is None:
+        return _DEFAULT_OPTIONS
+    if not isinstance(options, SummaryOptions):
+        raise TypeError(f"options: expected SummaryOptions or None, not {type(options).__name__}")
+    return options
 
 
 # ---------------------------------------------------------------------------------------
@@ -1018,7 +1054,7 @@ def _log_likelihood_at(field: FlowField, flows, options: SummaryOptions | None =
     of ``ground``, or None when the frame gets no likelihood fit. For diagnosis
     (``calibrate_summary evaluate``): whether a wrong answer is a search that missed a
     better flow, or the table preferring the wrong one."""
-    opts = options or _DEFAULT_OPTIONS
+    opts = _options(options)
     model = _model_of(field, opts, ground) if field.ready else None
     if model is None:
         return None
@@ -1041,7 +1077,7 @@ def prepare(params: EngineParams, *, options: SummaryOptions | None = None) -> N
     diagonal evidence and ~1 s with it — a second of dropped frames for a daemon that has
     just started streaming. Cheap once done (the models are cached per parameters and
     options)."""
-    opts = options or _DEFAULT_OPTIONS
+    opts = _options(options)
     if opts.likelihood:
         for ground in GROUNDS[1:]:
             _model_for(params, opts, ground)
@@ -1076,7 +1112,7 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
     IoC guess refined by calibrated maximum likelihood over the detection histogram; see
     the module docstring and ``docs/spec/template-model.md`` §6.
     """
-    opts = options or _DEFAULT_OPTIONS
+    opts = _options(options)
     if not isinstance(field, FlowField):
         raise TypeError(f"summarize() takes a FlowField, not {type(field).__name__}")
     field.require_evidence("summarize()")

@@ -109,6 +109,7 @@ def test_bad_frames_raise_value_error_naming_expected_and_received(frame, messag
         (dict(prefilter_size=4), "prefilter_size"),
         (dict(delays=(2,)), "delays"),
         (dict(delay_scales=(3,), scales=(1, 5), delays=(1, 2)), "delay_scales"),
+        (dict(delay_scales=(), delays=(1, 2)), r"delay_scales=\(\)"),  # no channel, yet 6 frames late
         # types are checked, not converted: a string, a fraction or None is an error
         (dict(threshold="5"), "threshold"),
         (dict(threshold=True), "threshold"),
@@ -194,12 +195,20 @@ def test_opencl_devices_and_device_choice(monkeypatch):
     assert emdflow.FlowEstimator(64, 48, backend="numpy").device is None
     with pytest.raises(ValueError, match="only the OpenCL backend"):
         emdflow.FlowEstimator(64, 48, backend="numpy", device=0)
+    # numpy's integers are indices too (np.int64(0) used to be looked up as the name "0")
+    assert emdflow.FlowEstimator(64, 48, device=np.int64(0)).device == devices[0][1]
+    for bad in (True, 1.5, [0]):
+        with pytest.raises(TypeError, match="expected an index"):
+            emdflow.FlowEstimator(64, 48, device=bad)
     monkeypatch.setenv("EMDFLOW_OPENCL_DEVICE", "no-such-device")
-    with pytest.raises(ValueError, match="no-such-device"):
+    with pytest.raises(ValueError, match=r"no-such-device.*\(EMDFLOW_OPENCL_DEVICE\)"):
         emdflow.FlowEstimator(64, 48)
     monkeypatch.setenv("EMDFLOW_OPENCL_DEVICE", "7")
-    with pytest.raises(ValueError, match="out of range"):
+    with pytest.raises(ValueError, match=r"7 \(EMDFLOW_OPENCL_DEVICE\) out of range"):
         emdflow.FlowEstimator(64, 48)
+    # the caller's choice wins over the environment's, and is not named after it
+    with pytest.raises(ValueError, match=r"index 9 out of range"):
+        emdflow.FlowEstimator(64, 48, device=9)
 
 
 def test_missing_opencl_platform_says_how_to_install(monkeypatch):

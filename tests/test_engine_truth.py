@@ -263,6 +263,13 @@ def test_a_gain_step_is_caught_with_brightness_compensation(gain):
         flagged.append(field.exposure_step)
         if field.exposure_step:
             assert emdflow.summarize(field).quality == 0
+        if t == 16:
+            # the share the step test read on the step's frame (later frames are flagged
+            # while the step is still in the templates' history): nearly all of one
+            # polarity, within 0..1 (it used to divide by the compensated channel's count)
+            share = field.brightening_fraction
+            assert (share > 0.9) if gain > 1 else (share < 0.1)
+        assert 0.0 <= field.brightening_fraction <= 1.0
     assert [t for t, f in enumerate(flagged) if f] == [16, 17, 18]
 
 

@@ -371,6 +371,29 @@ def test_line_ground_tables_are_their_own():
         SummaryOptions(ground="tiles")
 
 
+@pytest.mark.parametrize("option, value", [
+    ("full_detections", 0), ("full_textured", 0.0), ("quality_error", 0.0), ("top_speed", 0.0),
+    ("max_axis_angle", -10.0), ("outlier_probability", 0.0), ("outlier_probability", 2.0),
+    ("overdispersion", math.nan), ("row_exponent", 0.0), ("iterations", 0), ("misfit_weight", -0.1),
+    ("min_textured", math.inf), ("full_detections", "400"),
+])
+def test_summary_options_out_of_range_name_the_option(option, value):
+    """Each of these used to surface inside summarize(): a ZeroDivisionError, an opaque
+    reshape error, log warnings with a garbage flow, or a NaN expected error."""
+    with pytest.raises(ValueError, match=rf"SummaryOptions\({option}="):
+        SummaryOptions(**{option: value})
+
+
+def test_summarize_refuses_options_that_are_not_summary_options():
+    """A dict of options used to be taken for "no options" (an empty one) or fail deep
+    inside (a full one)."""
+    field = _field(model_histogram((2.0, 1.0), seed=1))
+    for options in ({}, {"ground": "edges"}, "edges"):
+        with pytest.raises(TypeError, match="expected SummaryOptions or None"):
+            summarize(field, options=options)
+    assert summarize(field, options=None) == summarize(field) == summarize(field, options=SummaryOptions())
+
+
 @pytest.mark.parametrize("flow", [(7.0, 2.0), (-3.0, 8.0), (-10.0, -4.0)])
 def test_the_summary_reads_line_ground_with_its_table(flow):
     """Detections drawn from the line-ground table: the edge table alone reads them

@@ -130,6 +130,12 @@ def test_flow_exports_npz_and_flo(tmp_path, clip, backend):
     np.testing.assert_allclose(u[np.isfinite(u)], z["u"][-1][np.isfinite(u)].astype(np.float32))
     assert np.isfinite(u).any()
     assert np.isnan(read_flo(flos[0])[0]).all()  # history not full yet
+    # the file is written where it was asked for (numpy appends ".npz" to a bare name)
+    other = tmp_path / "fields.dat"
+    assert main(["flow", str(folder), "-o", str(tmp_path / "g.avi"), "--npz", str(other),
+                 "--backend", backend, "--fps", "10", "--max-frames", "3", "-q"]) == 0
+    assert other.is_file() and not (tmp_path / "fields.dat.npz").exists()
+    assert np.load(other)["u"].shape == (3, H, W)
 
 
 def test_flow_ctrl_c_leaves_a_playable_file(tmp_path, clip, backend, monkeypatch):
@@ -598,6 +604,12 @@ def test_bad_inputs_give_one_line_naming_the_file(tmp_path, capsys, clip):
     assert main(["frames", str(clip[1]), "--focal-length-px", "300", "--backend", "numpy"]) == 2
     _one_line_error(capsys, clip[1], "--fps")
 
+    # every output path before the run (--markdown used to fail only after it)
+    for option in ("--markdown", "--csv"):
+        target = tmp_path / "nodir" / "e.out"
+        assert main(["eval", "--quick", option, str(target)]) == 2
+        _one_line_error(capsys, target, "does not exist")
+
     bad_texture = tmp_path / "tex.png"
     bad_texture.write_text("nope")
     for tex in (bad_texture, tmp_path / "absent.jpg"):
@@ -648,6 +660,16 @@ def test_render_writes_the_frames_the_daemon_reads_back_exactly(tmp_path, capsys
     assert main(["render", uri, "-o", str(out), "--size", "64x48", "--max-frames", "3", "-q"]) == 0
     assert main(["render", str(out), "-o", str(out)]) == 2
     _one_line_error(capsys, "would overwrite the input")
+    # frames too (its CSV used to replace the video it was reading, exit 0)
+    before = out.read_bytes()
+    assert main(["frames", str(out), "-o", str(out), "--backend", "numpy"]) == 2
+    _one_line_error(capsys, "would overwrite the input")
+    assert out.read_bytes() == before
+    for argv, option in ((["frames", str(out), "--max-frames", "0"], "--max-frames 0"),
+                         (["flow", str(out), "-o", str(tmp_path / "o.avi"), "--max-frames", "-1"], "--max-frames -1"),
+                         (["flow", str(out), "-o", str(tmp_path / "o.avi"), "--upscale", "0"], "--upscale 0")):
+        assert main([*argv, "--backend", "numpy"]) == 2
+        _one_line_error(capsys, option, "at least 1")
 
 
 # --------------------------------------------------------------------------------- devices

@@ -79,6 +79,10 @@ SMALL_BENCH = ["--sizes", "32x24", "--block", "2", "--rounds", "1"]
     (["--rounds", "0"], ["--rounds 0"]),
     (["--warmup", "-1"], ["--warmup -1"]),
     (["--drift", "nan", "--stages"], ["--drift nan"]),
+    (["--drift", "-2", "--stages"], ["--drift -2", "> -1"]),
+    # the engine's pixel limit, before minutes of rendering (it used to end in a traceback
+    # after the first size's run)
+    (["--sizes", "16x16,4097x4096"], ["--sizes 4097x4096", "16777216 pixels"]),
     (["--json", "/nonexistent/x.json"], ["--json /nonexistent/x.json", "does not exist"]),
 ])
 def test_bench_bad_arguments_are_usage_errors_before_the_run(capsys, monkeypatch, extra, names):

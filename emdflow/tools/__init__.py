@@ -72,14 +72,19 @@ def frame_size_problem(width: int, height: int, *, dis: bool, dis_role: str = ""
     """Why a ``width`` x ``height`` camera flight cannot be measured, or None.
 
     Both sides must be at least :data:`emdflow.synthetic.MIN_SIDE` px (the renderer's
-    smallest frame); with ``dis`` (OpenCV DIS runs on the frames) the longer side at least
-    :data:`DIS_MIN_LONG_SIDE` px. The DIS message is ``"OpenCV DIS{dis_role} needs a side of
-    at least {DIS_MIN_LONG_SIDE} px{dis_hint}"``; the caller puts the option in front.
+    smallest frame), the frame at most the engine's ``MAX_PIXELS``; with ``dis`` (OpenCV
+    DIS runs on the frames) the longer side at least :data:`DIS_MIN_LONG_SIDE` px. The DIS
+    message is ``"OpenCV DIS{dis_role} needs a side of at least {DIS_MIN_LONG_SIDE}
+    px{dis_hint}"``; the caller puts the option in front.
     """
+    from emdflow.estimator import MAX_PIXELS
     from emdflow.synthetic import MIN_SIDE
 
     if min(width, height) < MIN_SIDE:
         return f"both sides must be at least {MIN_SIDE} px (the flight renderer's smallest frame)"
+    if width * height > MAX_PIXELS:
+        # (known before minutes of rendering, not from the engine afterwards)
+        return f"at most {MAX_PIXELS} pixels (the engine's limit, e.g. 4096x4096)"
     if dis and max(width, height) < DIS_MIN_LONG_SIDE:
         return f"OpenCV DIS{dis_role} needs a side of at least {DIS_MIN_LONG_SIDE} px{dis_hint}"
     return None
@@ -102,6 +107,22 @@ def check_positive(option: str, value, unit: str) -> None:
 
     if value is not None and not (math.isfinite(value) and value > 0):
         raise ToolError(f"{option} {value:g}: must be a finite number > 0 ({unit})", 2)
+
+
+def check_count(option: str, value) -> None:
+    """Raise ToolError (code 2) naming ``option`` unless ``value`` is None or an int ≥ 1
+    (``--max-frames -1`` used to run no frame and exit 0)."""
+    if value is not None and value < 1:
+        raise ToolError(f"{option} {value}: must be at least 1", 2)
+
+
+def refuse_overwrite(input_path, output_path) -> None:
+    """Raise ToolError (code 2) when the output file is the input itself (checked before the
+    input is read: writing would destroy it)."""
+    from pathlib import Path
+
+    if input_path and output_path and Path(input_path).resolve() == Path(output_path).resolve():
+        raise ToolError(f"{output_path}: output would overwrite the input", 2)
 
 
 def interp_weights(x, nodes):

@@ -798,7 +798,7 @@ def run(args) -> int:
         config = config_from_args(args)
     except ValueError as e:
         raise ToolError(str(e), 2) from None
-    for path in (args.csv, args.plot):
+    for path in (args.csv, args.plot, args.markdown):
         if path and (problem := missing_folder(path)):
             raise ToolError(f"{path}: {problem}", 2)
 
