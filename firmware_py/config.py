@@ -15,7 +15,7 @@ from pathlib import Path
 
 from emdflow.params import MODELS
 
-from .links.base import AUTOPILOT_PROTOCOLS
+from .links.base import AUTOPILOT_PROTOCOLS, MIN_MESSAGE_RATE_HZ
 
 __all__ = ["Config", "SourceConfig", "OpticsConfig", "EngineConfig", "LinkConfigSection",
            "DaemonConfig", "ConfigError", "load_config", "SECTIONS"]
@@ -25,9 +25,10 @@ class ConfigError(ValueError):
     """A configuration problem; the message names the file and key."""
 
 
-def _opt(default=None, *, choices=None, minimum=None, maximum=None, doc=""):
+def _opt(default=None, *, choices=None, minimum=None, maximum=None, doc="", why=""):
+    # why: the reason for the range, appended to an out-of-range error
     return dataclasses.field(default=default, metadata=dict(choices=choices, minimum=minimum,
-                                                            maximum=maximum, doc=doc))
+                                                            maximum=maximum, doc=doc, why=why))
 
 
 @dataclasses.dataclass
@@ -41,7 +42,9 @@ class SourceConfig:
     pixel_format: str = _opt("GREY", choices=("GREY", "YUYV", "MJPG"), doc="V4L2 pixel format")
     buffer_count: int = _opt(2, minimum=1, maximum=10, doc="V4L2 driver buffers")
     exposure_us: float | None = _opt(None, minimum=1.0, maximum=1_000_000.0, doc="manual exposure, µs")
-    gain: float | None = _opt(None, minimum=0.0, doc="manual gain (V4L2 units, DepthAI ISO)")
+    # V4L2 gains are driver units (0..255 up to a few thousand), DepthAI's an ISO of 100..1600;
+    # anything near the bound is a typo (DepthAI raises on an ISO beyond 32 bits, every open)
+    gain: float | None = _opt(None, minimum=0.0, maximum=1_000_000.0, doc="manual gain (V4L2 units, DepthAI ISO)")
     loop: bool = _opt(False, doc="rewind files at their end")
     realtime: bool = _opt(False, doc="pace file and synthetic sources to their fps")
 
@@ -105,7 +108,9 @@ class LinkConfigSection:
     sysid: int = _opt(1, minimum=1, maximum=255, doc="MAVLink system id")
     compid: int = _opt(158, minimum=1, maximum=255, doc="MAVLink component id")
     sensor_id: int = _opt(0, minimum=0, maximum=255, doc="flow sensor id")
-    message_rate_hz: float | None = _opt(None, minimum=1.0, maximum=1000.0, doc="flow message rate")
+    message_rate_hz: float | None = _opt(None, minimum=MIN_MESSAGE_RATE_HZ, maximum=1000.0, doc="flow message rate",
+                                         why="a report may span at most 0.45 s: ArduPilot needs a flow "
+                                             "message every < 0.5 s")
     heartbeat_rate_hz: float = _opt(1.0, minimum=0.1, maximum=50.0, doc="heartbeat rate")
     ground_distance_m: float | None = _opt(None, minimum=0.0, maximum=1000.0, doc="fixed ground distance, m")
     message_log: str | None = _opt(None, doc="CSV / JSON-lines log of sent messages")
@@ -251,10 +256,11 @@ def _check(cls: type, key: str, value, where: str):
             value = value.lower()
     if meta.get("choices") and value not in meta["choices"]:
         raise ConfigError(f"{where} = {value!r}: expected one of {', '.join(map(str, meta['choices']))}")
+    why = f" ({meta['why']})" if meta.get("why") else ""
     if meta.get("minimum") is not None and value < meta["minimum"]:
-        raise ConfigError(f"{where} = {value!r}: must be >= {meta['minimum']}")
+        raise ConfigError(f"{where} = {value!r}: must be >= {meta['minimum']}{why}")
     if meta.get("maximum") is not None and value > meta["maximum"]:
-        raise ConfigError(f"{where} = {value!r}: must be <= {meta['maximum']}")
+        raise ConfigError(f"{where} = {value!r}: must be <= {meta['maximum']}{why}")
     return value
 
 

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import threading
 import time
 from collections import deque
@@ -53,6 +52,10 @@ _STUCK_READ_S = 20.0
 # Frames further apart than this many typical processed intervals are a gap (and no frame
 # for that long is blindness), when that is longer than the configured time.
 _GAP_INTERVALS = 3.0
+# A reopened source that has delivered frames for this long is working again: only then does
+# its reopen back-off start again from the first delay (one frame and a failure is no
+# recovery; the extended model needs 12 frames before its first flow).
+_STEADY_S = 5.0
 
 
 def choose_threading(setting: str, *, live: bool) -> str:
@@ -261,24 +264,33 @@ class SourceKeeper:
         First and longest delay between reopen attempts, s.
     stats : Stats
         Receives ``reopens`` and ``capture`` timings.
+    steady_s : float
+        The back-off starts again from ``backoff_s`` only after a source has delivered
+        frames for this long, s; a source that fails sooner is reopened ever more slowly.
+    clock : callable
+        Monotonic time in s for the back-off and the hung-read check (tests drive it).
     """
 
     def __init__(self, factory: Callable[[], FrameSource], *, backoff_s: float = 0.5,
-                 backoff_max_s: float = 10.0, stats: Stats | None = None):
+                 backoff_max_s: float = 10.0, stats: Stats | None = None, steady_s: float = _STEADY_S,
+                 clock: Callable[[], float] = time.monotonic):
         self.factory = factory
         self.backoff_s, self.backoff_max_s = backoff_s, backoff_max_s
+        self.steady_s = steady_s
+        self._clock = clock
         self.stats = stats or Stats()
         self.source: FrameSource | None = None
         self._delay = backoff_s
         self._next_try = 0.0
         self._opened_once = False
-        self._delivered = False
+        self._first_frame_at: float | None = None  # clock() at the current source's first frame
         self._lock = threading.Lock()
         #: called with each source the keeper opens itself (a camera absent at start-up,
         #: a reopen): the daemon checks what the camera delivers
         self.on_open: Callable[[FrameSource], None] | None = None
         self._bad_seen = 0  # the source's bad_frames already added to stats.bad_frames
-        #: time.monotonic() when the current source.read() started, None outside a read
+        #: clock() (time.monotonic() in the daemon) when the current source.read() started,
+        #: None outside a read
         self.reading_since: float | None = None
         #: a recording (file, replay) reached its end: nothing more to read, nothing to reopen
         self.ended = False
@@ -290,10 +302,10 @@ class SourceKeeper:
 
     def retry_after(self, delay_s: float) -> None:
         """Schedule the next open attempt ``delay_s`` from now."""
-        self._next_try = time.monotonic() + delay_s
+        self._next_try = self._clock() + delay_s
 
     def retry_in_s(self) -> float:
-        return max(0.0, self._next_try - time.monotonic())
+        return max(0.0, self._next_try - self._clock())
 
     @property
     def blind(self) -> bool:
@@ -301,7 +313,7 @@ class SourceKeeper:
 
     def _fail(self, what: str) -> None:
         self.close()
-        self._next_try = time.monotonic() + self._delay
+        self._next_try = self._clock() + self._delay
         log.warning("%s; reopening in %.1f s (heartbeats continue, quality 0)", what, self._delay)
         self._delay = min(self.backoff_max_s, self._delay * 2.0)
 
@@ -312,7 +324,7 @@ class SourceKeeper:
         except Exception as exc:  # SourceError, or a driver raising something else
             self._fail(f"source: cannot open: {exc}")
             return False
-        self.source, self._delivered = source, False
+        self.source, self._first_frame_at = source, None
         self._bad_seen = source.bad_frames
         if self._opened_once:
             self.stats.reopens += 1
@@ -336,11 +348,11 @@ class SourceKeeper:
             if self.ended:
                 return None
             if self.source is None:
-                if time.monotonic() < self._next_try or not self._open():
+                if self._clock() < self._next_try or not self._open():
                     return None
             source = self.source
             t0 = host_us()
-            self.reading_since = time.monotonic()
+            self.reading_since = self._clock()
             try:
                 frame = source.read()
             except Exception as exc:
@@ -369,8 +381,11 @@ class SourceKeeper:
                 self.stats.stage("capture", max(0, done - frame.capture_host_us))
             else:
                 self.stats.stage("capture", max(0, done - t0 - getattr(source, "waited_us", 0)))
-            if not self._delivered:
-                self._delivered, self._delay = True, self.backoff_s
+            now = self._clock()
+            if self._first_frame_at is None:
+                self._first_frame_at = now
+            elif now - self._first_frame_at >= self.steady_s and self._delay != self.backoff_s:
+                self._delay = self.backoff_s  # delivering steadily: a new failure starts afresh
             return frame
 
     def close(self) -> None:
@@ -480,24 +495,25 @@ class Daemon:
         try:
             return emdflow.FlowEstimator(width, height, backend=backend, **self.config.engine.estimator_options())
         except ValueError as exc:  # a setting, not a failure: exit 2 (systemd does not restart)
-            choice = os.environ.get("EMDFLOW_OPENCL_DEVICE")
-            by_choice = choice and backend == "opencl" and "OpenCL device" in str(exc)
-            where = f"EMDFLOW_OPENCL_DEVICE={choice!r}" if by_choice else "[engine]"
-            raise ConfigError(f"{where}: {exc}") from None
+            # (the engine's own message names EMDFLOW_OPENCL_DEVICE when that made the choice)
+            raise ConfigError(str(exc) if "(EMDFLOW_OPENCL_DEVICE)" in str(exc) else f"[engine]: {exc}") from None
 
     def _default_link(self, focal_length_px: float):
         from .links import LinkConfig, open_link
 
         c = self.config.link
-        return open_link(LinkConfig(
-            port=c.port, baud=c.baud, autopilot=self.config.link_autopilot(), protocol=c.protocol,
-            focal_length_px=focal_length_px,
-            mounting_rotation_deg=self.config.optics.mounting_rotation_deg,
-            mounting_mirror=self.config.optics.mounting_mirror,
-            sysid=c.sysid, compid=c.compid, sensor_id=c.sensor_id,
-            message_rate_hz=c.message_rate_hz, heartbeat_rate_hz=c.heartbeat_rate_hz,
-            ground_distance_m=c.ground_distance_m, message_log=c.message_log,
-            extra_values=c.extra_values, msp_counts_per_degree=c.msp_counts_per_degree))
+        try:
+            return open_link(LinkConfig(
+                port=c.port, baud=c.baud, autopilot=self.config.link_autopilot(), protocol=c.protocol,
+                focal_length_px=focal_length_px,
+                mounting_rotation_deg=self.config.optics.mounting_rotation_deg,
+                mounting_mirror=self.config.optics.mounting_mirror,
+                sysid=c.sysid, compid=c.compid, sensor_id=c.sensor_id,
+                message_rate_hz=c.message_rate_hz, heartbeat_rate_hz=c.heartbeat_rate_hz,
+                ground_distance_m=c.ground_distance_m, message_log=c.message_log,
+                extra_values=c.extra_values, msp_counts_per_degree=c.msp_counts_per_degree))
+        except ValueError as exc:  # a setting (e.g. a baud rate too low): exit 2, no restart
+            raise ConfigError(f"{self.config.path or 'configuration'}: [link] {exc}") from None
 
     # -- start-up ---------------------------------------------------------------------
     def _start_source(self) -> SourceKeeper:

@@ -91,6 +91,7 @@ def run_demo(*, frames: int | None = None, config_path: str | None = None, sourc
         Where the table goes (default stdout).
     """
     from .daemon import Daemon
+    from .sources import SourceError
     from .sources.synthetic import SyntheticSource
 
     out = out or sys.stdout
@@ -172,8 +173,10 @@ def run_demo(*, frames: int | None = None, config_path: str | None = None, sourc
         os.close(master)
         os.close(slave)
     if "error" in result:
-        print(f"demo failed: {result['error']}", file=out, flush=True)
-        return 1
+        error = result["error"]
+        print(f"demo failed: {error}", file=out, flush=True)
+        # as emdflowd's: a source or setting that cannot work is a usage error (2), not a failure
+        return 2 if isinstance(error, (ConfigError, SourceError)) else 1
     return _summary(end - start, reader, daemon, truth_source, out, result.get("code", 1), fell_back)
 
 

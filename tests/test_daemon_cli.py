@@ -163,6 +163,25 @@ def test_a_port_that_can_never_be_a_serial_port_is_a_configuration_error(tmp_pat
     assert "Traceback" not in result.stderr
 
 
+@pytest.mark.parametrize("autopilot, baud, advice", [("ardupilot", 1200, 4800), ("both", 2400, 9600)])
+def test_a_baud_rate_too_low_for_the_flow_messages_is_a_configuration_error(autopilot, baud, advice):
+    """Not even 3 reports per second (one every 0.33 s; ArduPilot needs one every < 0.5 s)
+    fit: refused at start (exit 2) with the baud rate that would do, not run into timeouts."""
+    result = run_cli(["--source", "synthetic:", "--serial", "/dev/null", "--baud", baud, "--autopilot",
+                      autopilot, "--frames", 3], timeout=60)
+    assert result.returncode == 2, result.stderr[-2000:]
+    assert f"configuration: [link] baud = {baud} (--baud) is too low: at least 3 " in result.stderr
+    assert f"use {advice} baud or more on both ends" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_demo_with_a_missing_video_exits_2(tmp_path):
+    """A source that cannot be opened is a usage error for the demo as for emdflowd (was 1)."""
+    missing = tmp_path / "missing.mkv"
+    result = run_cli(["--demo", "--source", f"video:{missing}", "--frames", 5], timeout=120)
+    assert result.returncode == 2, result.stdout[-2000:] + result.stderr[-2000:]
+    assert f"video file '{missing}': no such file" in result.stdout
+
+
 def test_demo_with_a_bad_synthetic_option_exits_2():
     result = run_cli(["--demo", "--source", "synthetic:noise=-1"], timeout=60)
     assert result.returncode == 2

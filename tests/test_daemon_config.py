@@ -43,6 +43,10 @@ def _write(tmp_path, text):
     ("[camera]\nuri = 'x'\n", "unknown section [camera]"),
     ("[link]\nbaud = 'fast'\n", "[link] baud = 'fast': expected an integer"),
     ("[link]\nbaud = 300\n", "[link] baud = 300: must be >= 1200"),
+    ("[link]\nmessage_rate_hz = 2\n", ("[link] message_rate_hz = 2.0: must be >= 3.0 (a report may span at "
+                                      "most 0.45 s: ArduPilot needs a flow message every < 0.5 s)")),
+    # (DepthAI raised TypeError on such an ISO at every open, and the camera was retried forever)
+    ("[source]\ngain = 1e12\n", "[source] gain = 1000000000000.0: must be <= 1000000.0"),
     ("[link]\nautopilot = 'betaflight'\n", "[link] autopilot = 'betaflight': expected one of"),
     ("[engine]\nbackend = 'cuda'\n", "[engine] backend = 'cuda'"),
     ("[optics]\nmounting_rotation_deg = 45\n", "[optics] mounting_rotation_deg = 45"),

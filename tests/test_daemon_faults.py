@@ -162,7 +162,7 @@ def test_an_opencl_device_choice_that_names_none_is_a_configuration_error(tmp_pa
     finally:
         pty.close()
     assert result.returncode == 2, result.stderr
-    assert "EMDFLOW_OPENCL_DEVICE='no-such-device': OpenCL device 'no-such-device' not found among" in result.stderr
+    assert "OpenCL device 'no-such-device' (EMDFLOW_OPENCL_DEVICE) not found among" in result.stderr
     assert "Traceback" not in result.stderr
 
 

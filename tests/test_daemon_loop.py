@@ -9,6 +9,7 @@ import threading
 import time
 
 import numpy as np
+import pytest
 
 from firmware_py.daemon import FrameMailbox, SourceKeeper, Stats, SteadySubset, choose_threading
 from firmware_py.sources import Frame, make_source
@@ -163,6 +164,74 @@ def test_source_keeper_backoff_grows_while_source_is_missing(tmp_path, caplog):
     time.sleep(0.11)
     frame = keeper.read()
     assert frame is not None and frame.index == 0 and not keeper.blind
+    keeper.close()
+
+
+class _Clock:
+    """The keeper's clock in 10 ms ticks, advanced by the test (no float drift)."""
+
+    def __init__(self):
+        self.ticks = 100_000
+
+    def __call__(self) -> float:
+        return self.ticks / 100
+
+
+def _keep_reading(keeper, clock, seconds=None, *, until=None, limit_s=60.0):
+    """The capture loop on the simulated clock, one read per 10 ms (a 100 fps camera), for
+    ``seconds`` or until ``until()`` holds (within ``limit_s``)."""
+    for _ in range(round((seconds if seconds is not None else limit_s) * 100)):
+        clock.ticks += 1
+        keeper.read()
+        if until is not None and until():
+            return
+    assert until is None, "the condition never came true"
+
+
+def _flaky_camera(clock, opened, fail_at):
+    """A real synthetic flight that fails like an unplugged camera at read ``fail_at(n)`` of
+    its n-th open; ``opened`` collects the open times."""
+    from daemon_util import FaultySource
+
+    def factory():
+        opened.append(clock())
+        return FaultySource(make_source("synthetic:u=2,v=1", width=32, height=24, fps=100),
+                            fail_at=fail_at(len(opened)))
+    return factory
+
+
+def test_a_camera_that_fails_right_after_each_open_is_reopened_ever_more_slowly(caplog):
+    """One frame and a failure is no recovery: such a camera was reopened every 0.5 s
+    forever (and the estimator, which needs 12 frames, never gave flow). The back-off
+    doubles to its cap; only 5 s of delivered frames start it again from 0.5 s."""
+    clock, opened, steady_from = _Clock(), [], [99]
+    # one frame, then a failure; from the `steady_from`-th open on 6 s of frames (600) first
+    factory = _flaky_camera(clock, opened, lambda n: 2 if n < steady_from[0] else 601)
+    keeper = SourceKeeper(factory, backoff_s=0.5, backoff_max_s=10.0, clock=clock)
+    _keep_reading(keeper, clock, 60.0)
+    gaps = [b - a for a, b in zip(opened, opened[1:])]
+    assert gaps == pytest.approx([0.5, 1, 2, 4, 8, 10, 10, 10, 10], abs=0.025)
+    assert "read failed (USB camera unplugged); reopening in 10.0 s" in caplog.text
+
+    steady_from[0] = len(opened) + 1
+    _keep_reading(keeper, clock, until=lambda: len(opened) == steady_from[0])
+    _keep_reading(keeper, clock, until=lambda: keeper.source is None, limit_s=7.0)   # 6 s of frames
+    failed_at = clock()
+    _keep_reading(keeper, clock, until=lambda: len(opened) == steady_from[0] + 1, limit_s=11.0)
+    assert opened[-1] - failed_at == pytest.approx(0.5, abs=0.015)   # not 10 s: it had recovered
+    keeper.close()
+
+
+def test_a_camera_that_fails_within_the_steady_time_keeps_the_longer_back_off():
+    """3 s of frames (less than the 5 s that make a source steady) do not reset the back-off."""
+    clock, opened = _Clock(), []
+    keeper = SourceKeeper(_flaky_camera(clock, opened, lambda n: 2 if n < 3 else 301),
+                          backoff_s=0.5, backoff_max_s=10.0, clock=clock)
+    _keep_reading(keeper, clock, until=lambda: len(opened) == 3)         # two quick failures
+    _keep_reading(keeper, clock, until=lambda: keeper.source is None, limit_s=4.0)  # 3 s of frames
+    failed_at = clock()
+    _keep_reading(keeper, clock, until=lambda: len(opened) == 4, limit_s=11.0)
+    assert opened[-1] - failed_at == pytest.approx(2.0, abs=0.015)     # doubling went on: 0.5, 1, 2
     keeper.close()
 
 

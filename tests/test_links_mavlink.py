@@ -116,6 +116,34 @@ def make_link_no_port(**kw):
     return link
 
 
+def test_a_slow_line_gets_the_fewest_reports_that_keep_a_span_under_half_a_second(caplog):
+    """Below the 60 % budget's 3 reports/s the link still sends 3/s (a report spans at most
+    0.45 s) and says so; a line too slow even for that is refused, naming the baud rate
+    that would do (test_links_timing flies these rates)."""
+    assert make_link_no_port(autopilot="ardupilot", baud=2400).message_rate_hz == 3   # 144 B/s budget: 2
+    assert "66 % of the line, over the 60 % budget" in caplog.text
+    assert make_link_no_port(autopilot="both", baud=4800).message_rate_hz == 3
+    for autopilot, baud, advice in (("ardupilot", 1200, "use 4800 baud"), ("both", 2400, "use 9600 baud")):
+        with pytest.raises(ValueError, match=f"baud {baud} is too low: at least 3 .* reports per second") as info:
+            open_link(LinkConfig(port=None, baud=baud, autopilot=autopilot, focal_length_px=F))
+        assert advice in str(info.value) and f"{baud} baud carries {baud // 10} bytes/s" in str(info.value)
+    with pytest.raises(ValueError, match="message_rate_hz must be None or >= 3"):
+        LinkConfig(port=None, message_rate_hz=2.0)
+
+
+def test_extra_values_are_budgeted_after_the_flow():
+    """The extras (4 NAMED_VALUE_FLOATs at 5 Hz: 600 bytes/s) take what the flow leaves:
+    all of it from 19200 baud on, less at 9600, nothing where even 0.5 rounds/s do not fit."""
+    full = make_link_no_port(autopilot="ardupilot", baud=57600, extra_values=True)
+    assert (full.extras_rate_hz, full.message_rate_hz) == (5.0, 61)        # (3456 - 21 - 600) / 46
+    assert make_link_no_port(autopilot="ardupilot", baud=19200, extra_values=True).extras_rate_hz == 5.0
+    thin = make_link_no_port(autopilot="ardupilot", baud=9600, extra_values=True)
+    assert (thin.extras_rate_hz, thin.message_rate_hz) == (0.7, 10)        # was 5 Hz and 1 flow message/s
+    none = make_link_no_port(autopilot="px4", baud=9600, extra_values=True)
+    assert (none.extras_rate_hz, none.message_rate_hz) == (0.0, 9)
+    assert make_link_no_port(autopilot="ardupilot", baud=9600).extras_rate_hz == 0.0
+
+
 def fly(peer, *, flow_x, flow_y, frames=100, **kw):
     """Flow messages after the start marker (quality 0 at the first frame, checked here)."""
     link = make_link(peer, autopilot="both", **kw)

@@ -108,6 +108,10 @@ def test_rate_limited_by_baud():
     link = open_link(LinkConfig(port=None, baud=9600, autopilot="inav", focal_length_px=400.0))
     link.close()
     assert link.message_rate_hz == 32  # 960 B/s * 0.6 / 18 B
+    # the slowest baud the daemon accepts still carries 3 reports/s (a report spans <= 0.45 s)
+    link = open_link(LinkConfig(port=None, baud=1200, autopilot="inav", focal_length_px=400.0))
+    link.close()
+    assert link.message_rate_hz == 4   # 72 B/s / 18 B
 
 
 def test_forward_flight_worked_example(peer):

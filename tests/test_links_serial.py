@@ -208,3 +208,79 @@ def test_message_log_survives_a_daemon_restart(tmp_path, suffix):
         rows = [json.loads(line) for line in lines]
     assert [r["message"] for r in rows] == sent    # both runs, in order
     assert sent.count("HEARTBEAT") >= 2 and sent.count("OPTICAL_FLOW_RAD") >= 2 * 10
+
+
+class HangUpAfterOpen:
+    """A serial port that opens but fails at once (a dying adapter, a line that hangs up):
+    each time the transport opens the pty's slave, the master is closed under it and a new
+    pair is put at the same path for the next open. ``hang_up = False`` lets the next open
+    stay up."""
+
+    def __init__(self, peer: PtyPeer):
+        self.peer, self.hang_up, self.opened_at = peer, True, []
+
+    def __call__(self, now_us: int) -> None:   # SerialTransport's on_open
+        self.opened_at.append(now_us)
+        if self.hang_up:
+            self.peer.close()
+            self.peer.open()
+
+
+def _run_port(transport, start_us: int, seconds: float, step_us: int = 10_000) -> int:
+    """The link's loop on a simulated clock: reopen, write a heartbeat-sized message, read."""
+    from firmware_py.links.serial_port import OutgoingMessage
+
+    now = start_us
+    for _ in range(int(seconds * 1e6 / step_us)):
+        now += step_us
+        transport.service(now)
+        transport.enqueue(OutgoingMessage(name="HEARTBEAT", data=b"\xfd" + bytes(20)))
+        transport.pump(now)
+        transport.read_available(now_us=now)
+    return now
+
+
+def test_a_port_that_fails_right_after_each_open_is_retried_ever_more_slowly(tmp_path, caplog):
+    """Reopened every 0.5 s forever with two warnings each time, such a port filled the log
+    (239 warnings a minute). The back-off doubles up to 8 s; only a port that stayed open for
+    5 s starts it again at 0.5 s. One warning for the loss, one saying it keeps failing, then a
+    summary per minute."""
+    from firmware_py.links.serial_port import SerialTransport
+
+    caplog.set_level(logging.DEBUG, logger="firmware_py.links")
+    peer = PtyPeer(tmp_path / "ttyFC")
+    port = HangUpAfterOpen(peer)
+    stats: dict = {}
+    transport = SerialTransport(port=peer.path, baud=115200, stats=stats, on_open=port)
+    start = host_us()
+    try:
+        now = _run_port(transport, start, 70.0)
+        gaps_s = [(b - a) / 1e6 for a, b in zip(port.opened_at, port.opened_at[1:])]
+        assert gaps_s[:6] == pytest.approx([0.51, 1.01, 2.01, 4.01, 8.01, 8.01], abs=0.011)
+        assert len(port.opened_at) == 12 and stats["open_failures"] == 0
+        assert peer.path in stats["last_error"]
+        warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+        assert len(warnings) == 4, warnings
+        assert "closing, will reopen" in warnings[0] and "reopened" in warnings[1]
+        assert "again, 0.0 s after reopening: the port fails soon after each open" in warnings[2]
+        assert "still fails soon after each open: 10 failure(s) in the last 63 s" in warnings[3]
+        assert sum(peer.path in r.getMessage() for r in caplog.records if r.levelno == logging.DEBUG) >= 10
+
+        # The port recovers: open for 5 s, it is healthy; its next loss warns again and is
+        # retried after 0.5 s, not 8 s.
+        port.hang_up = False
+        now = _run_port(transport, now, 8.0)
+        assert transport.is_open and len(port.opened_at) == 13
+        assert "has stayed open for 5 s after 12 failure(s) in a row: healthy again" in caplog.text
+        caplog.clear()
+        peer.close()                                  # unplugged ...
+        peer.open()                                   # ... and back at once
+        reopened = len(port.opened_at)
+        _run_port(transport, now, 1.0)
+        assert len(port.opened_at) == reopened + 1
+        assert (port.opened_at[-1] - now) / 1e6 == pytest.approx(0.51, abs=0.011)
+        warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+        assert len(warnings) == 2 and "closing, will reopen" in warnings[0] and "again" not in warnings[0]
+    finally:
+        transport.close()
+        peer.close()

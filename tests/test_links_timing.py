@@ -371,3 +371,104 @@ def test_px4_rate_above_sens_flow_rate_is_warned(caplog):
         link.close()
         assert link.message_rate_hz == rate
         assert any("SENS_FLOW_RATE" in r.getMessage() for r in caplog.records) == warned, autopilot
+
+
+# -- the fewest reports: never a span the autopilot rejects ---------------------------------
+
+MAX_SPAN_US = 450_000   # the integrator's max_interval_us: ArduPilot needs a message every < 0.5 s
+
+
+def _late_frames(count: int) -> list[int]:
+    """30 fps, but the 10th frame after every 9 comes 160 ms late (just inside the 5-interval
+    gap threshold, so it is integrated, not a restart)."""
+    return [160_000 if i % 10 == 9 else 33_333 for i in range(count)]
+
+
+@pytest.mark.parametrize("autopilot, settings, intervals", [
+    # the reviewer's case: the extras' 600 bytes/s left the flow 1 Hz (1 s spans)
+    ("ardupilot", {"baud": 9600, "extra_values": True}, [10_000] * 300),
+    ("px4", {"baud": 2400}, [10_000] * 300),                      # the budget alone gave 2 Hz: 0.5 s
+    ("ardupilot", {"message_rate_hz": 3.0}, [250_000] * 16),       # 4 fps: reports on frames 0.5 s apart
+    ("px4", {"message_rate_hz": 3.0}, _late_frames(120)),          # a late frame on a nearly full report
+], ids=["9600-extras", "2400", "4fps-3Hz", "late-frame-3Hz"])
+def test_a_low_message_rate_never_spans_more_than_the_autopilot_accepts(tmp_path, autopilot, settings,
+                                                                        intervals):
+    peer = PtyPeer(tmp_path / "ttyFC")
+    options = {"baud": 921600, **settings}
+    link = open_link(LinkConfig(port=peer.path, autopilot=autopilot, focal_length_px=F, **options))
+    fc = FlightController(peer, autopilot)
+    start = host_us()
+    frames = stream(start, intervals, engine_us=3_000, flow_px_per_s=FLOW)
+    try:
+        drive(link, fc, frames, start_us=start, end_us=frames[-1][0] + STEP_US)
+    finally:
+        link.close()
+        peer.close()
+    assert link.message_rate_hz >= 3
+    first = next(i for i, m in enumerate(fc.messages) if m["quality"] > 0)
+    reports = fc.messages[first:]    # after the quality-0 start marker (and a keep-alive before it)
+    if autopilot == "px4":
+        spans = [m["integration_time_us"] for m in reports]
+    else:                            # contiguous reports: each spans from the previous one's end
+        spans = [b["time_usec"] - a["time_usec"] for a, b in zip(fc.messages[first - 1:], reports)]
+    assert len(spans) >= 5 and max(spans) <= MAX_SPAN_US, spans
+    assert all(m["used"] for m in reports)                 # real flow, not keep-alives
+    assert fc.largest_gap_us(start) < TIMEOUT_US[autopilot]
+    for m in reports:
+        assert m["rate"][1] == pytest.approx(TRUE_RATE[1], rel=0.01)
+
+
+EXTRAS = (("expansion", 0.1), ("ttc_s", -1.0), ("balanceLR", 0.0), ("balanceTB", 0.0))
+
+
+def _with_extras(frames):
+    return [(at, FlowSample(timestamp_us=s.timestamp_us, capture_host_us=s.capture_host_us, flow_x=s.flow_x,
+                            flow_y=s.flow_y, quality=s.quality, extras=EXTRAS)) for at, s in frames]
+
+
+def test_extra_values_that_do_not_fit_are_thinned_not_the_flow(peer, caplog):
+    """At 9600 baud four NAMED_VALUE_FLOATs at 5 Hz (600 bytes/s) alone exceed the 576 bytes/s
+    budget: the flow keeps 10 reports/s, the extras get what is left, with one warning."""
+    caplog.set_level(logging.WARNING, logger="firmware_py.links")
+    link = open_link(LinkConfig(port=peer.path, baud=9600, autopilot="ardupilot", focal_length_px=F,
+                                extra_values=True))
+    fc = FlightController(peer, "ardupilot")
+    start = host_us()
+    seconds = 20.0
+    frames = _with_extras(stream(start, [10_000] * int(100 * seconds), engine_us=3_000, flow_px_per_s=FLOW))
+    try:
+        drive(link, fc, frames, start_us=start, end_us=frames[-1][0] + STEP_US)
+    finally:
+        link.close()
+    warnings = [r.getMessage() for r in caplog.records if "extra_values" in r.getMessage()]
+    assert len(warnings) == 1 and "at 9600 baud" in warnings[0] and "times per second instead of 5" in warnings[0]
+    assert link.message_rate_hz >= 10
+    named = [m for _, m in fc.wire if m.get_type() == "NAMED_VALUE_FLOAT"]
+    assert 0 < len(named) <= 4 * (seconds * 1.0 + 1)          # thinned to below 1 round/s
+    wire_bytes = sum(len(m.get_msgbuf()) for _, m in fc.wire)
+    assert wire_bytes / seconds <= 0.6 * 9600 / 10           # the whole link within its budget
+    assert len([m for m in fc.messages if m["used"]]) >= 10 * seconds - 2
+
+
+def test_extra_values_go_on_after_the_capture_clock_restarts(peer):
+    """A reopened OAK's device clock starts again near 0: the extras' schedule must start
+    afresh, not wait for the old uptime (1 h here) to come round again."""
+    link = make_link(peer, "ardupilot", extra_values=True)
+    fc = FlightController(peer, "ardupilot")
+    host = host_us()
+    frames = []
+    for phase, capture_start in enumerate((3_600_000_000, 100_000)):   # 1 h of uptime, then 0.1 s
+        for i in range(100):                                           # 1 s at 100 fps each
+            at = host + (phase * 100 + i) * 10_000
+            frames.append((at + 3_000, FlowSample(timestamp_us=capture_start + i * 10_000, capture_host_us=at,
+                                                  flow_x=0.0, flow_y=0.12, quality=200, extras=EXTRAS)))
+    try:
+        drive(link, fc, frames, start_us=host, end_us=frames[-1][0] + STEP_US)
+    finally:
+        link.close()
+    named = [m for _, m in fc.wire if m.get_type() == "NAMED_VALUE_FLOAT"]
+    before = [m for m in named if m.time_boot_ms >= 3_600_000]
+    after = [m for m in named if m.time_boot_ms < 3_600_000]
+    assert len(before) >= 4 * 4
+    assert len(after) >= 4 * 4                     # 5 rounds/s of 4 values over the second phase
+    assert after[0].time_boot_ms == 100            # the first frame of the restarted clock

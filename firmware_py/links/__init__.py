@@ -18,7 +18,25 @@ from __future__ import annotations
 
 from .base import FlowLink, FlowSample, LinkConfig, resolve_protocol
 
-__all__ = ["open_link", "LinkConfig", "FlowSample", "FlowLink", "resolve_protocol"]
+__all__ = ["open_link", "line_problem", "LinkConfig", "FlowSample", "FlowLink", "resolve_protocol"]
+
+
+def _link_class(config: LinkConfig) -> type[FlowLink]:
+    if resolve_protocol(config) == "msp":
+        from .msp import MspLink
+
+        return MspLink
+    from .mavlink import MavlinkLink
+
+    return MavlinkLink
+
+
+def line_problem(config: LinkConfig) -> str | None:
+    """Why ``config.baud`` cannot carry even the fewest flow reports the autopilots accept
+    (:data:`~firmware_py.links.base.MIN_MESSAGE_RATE_HZ`), or None; the text continues
+    "baud N is ". :func:`open_link` raises ValueError with it; ``emdflowd`` checks it at
+    start-up (exit 2)."""
+    return _link_class(config).line_problem(config)
 
 
 def open_link(config: LinkConfig) -> FlowLink:
@@ -39,14 +57,9 @@ def open_link(config: LinkConfig) -> FlowLink:
     Raises
     ------
     ValueError
-        For an invalid configuration (unknown autopilot/protocol, bad mounting, ...).
+        For an invalid configuration (unknown autopilot/protocol, bad mounting, a baud rate
+        too low for the flow messages: :func:`line_problem`, ...).
     """
     if not isinstance(config, LinkConfig):
         raise TypeError(f"open_link needs a LinkConfig, got {type(config).__name__}")
-    if resolve_protocol(config) == "msp":
-        from .msp import MspLink
-
-        return MspLink(config)
-    from .mavlink import MavlinkLink
-
-    return MavlinkLink(config)
+    return _link_class(config)(config)

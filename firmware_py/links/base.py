@@ -8,6 +8,12 @@ Timing model
   time, not wall clock) reaches the message period, the protocol encodes it and it is queued
   and written at once — messages go out as soon as the flow is known, at a steady rate
   (a frame's extra values are queued after its flow message).
+* **No report spans more than 0.45 s** (the integrator's ``max_interval_us``; ArduPilot needs
+  a message every < 0.5 s, PX4 drops integration times >= 1 s): the rate is never below
+  :data:`MIN_MESSAGE_RATE_HZ`, a report goes out on the last frame before the next one would
+  take it past that span, and a late frame closes the pending report first. A baud rate
+  that cannot carry even that is refused (:func:`line_problem`), and the extra values get
+  only what the flow leaves of the budget.
 * ``service(now_host_us)`` does everything that depends on host time: reopening the port,
   reading the autopilot's side, heartbeats, and the blind keep-alive.
 * **Blind camera.** ArduPilot marks the flow sensor unhealthy when the last message is
@@ -44,7 +50,7 @@ from .message_log import MessageLog
 from .serial_port import OutgoingMessage, SerialTransport
 
 __all__ = ["FlowSample", "LinkConfig", "FlowLink", "choose_message_rate", "AUTOPILOTS", "PROTOCOLS",
-           "AUTOPILOT_PROTOCOLS", "BLIND_RATE_HZ", "resolve_protocol"]
+           "AUTOPILOT_PROTOCOLS", "BLIND_RATE_HZ", "MIN_MESSAGE_RATE_HZ", "resolve_protocol", "line_problem"]
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +71,13 @@ SLOW_STREAM_WAIT = 1.25
 TIMEOUT_MARGIN_S = 0.05
 #: Fraction of the line's capacity the link may use (the rest absorbs jitter and bursts).
 BUSY_FRACTION = 0.6
+#: Fewest flow reports per second, whatever the baud rate or ``message_rate_hz``: a report
+#: may span at most the integrator's ``max_interval_us`` (0.45 s; ArduPilot marks the sensor
+#: unhealthy without a message every < 0.5 s, PX4 drops integration times >= 1 s), and a
+#: period of 1/3 s leaves room for a report to end on a frame boundary.
+MIN_MESSAGE_RATE_HZ = 3.0
+#: Baud rates suggested when the line is too slow (the usual UART settings).
+STANDARD_BAUDS = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
 
 
 @dataclass(frozen=True, slots=True)
@@ -126,7 +139,8 @@ class LinkConfig:
         Flow messages per second; None chooses the highest rate keeping the line ≤ 60 % busy,
         capped at 100 Hz (OPTICAL_FLOW alone), 70 Hz (with OPTICAL_FLOW_RAD, whose reports
         also span at least 1/70 s: PX4's SENS_FLOW_RATE) or 50 Hz (MSP). Never more than one
-        message per frame.
+        message per frame, never fewer than :data:`MIN_MESSAGE_RATE_HZ` (a report spans at
+        most 0.45 s).
     heartbeat_rate_hz : float
         MAVLink HEARTBEAT rate, Hz (also while the camera is blind).
     ground_distance_m : float or None
@@ -135,7 +149,8 @@ class LinkConfig:
         ``*.csv`` or ``*.jsonl`` path of a log of every message written, or None.
     extra_values : bool
         Also send the samples' extra values (MAVLink: NAMED_VALUE_FLOAT at 5 Hz, queued after
-        the frame's flow message; MSP: not sent).
+        the frame's flow message, thinned or left out where the baud rate leaves them no
+        room next to the flow messages; MSP: not sent).
     msp_counts_per_degree : float
         MSP motion counts per degree of angular flow; must equal INAV's ``opflow_scale``
         (default 10.5) so INAV's rates come out in the right scale.
@@ -170,8 +185,10 @@ class LinkConfig:
             raise ValueError(f"focal_length_px must be positive, got {self.focal_length_px}")
         if int(self.baud) <= 0:
             raise ValueError(f"baud must be positive, got {self.baud}")
-        if self.message_rate_hz is not None and not self.message_rate_hz > 0:
-            raise ValueError(f"message_rate_hz must be positive or None, got {self.message_rate_hz}")
+        if self.message_rate_hz is not None and not self.message_rate_hz >= MIN_MESSAGE_RATE_HZ:
+            raise ValueError(f"message_rate_hz must be None or >= {MIN_MESSAGE_RATE_HZ:g} (a report may span "
+                             f"at most 0.45 s: ArduPilot needs a flow message every < 0.5 s), got "
+                             f"{self.message_rate_hz}")
         if not self.heartbeat_rate_hz > 0:
             raise ValueError(f"heartbeat_rate_hz must be positive, got {self.heartbeat_rate_hz}")
         if not 0 <= int(self.sensor_id) <= 255:
@@ -211,18 +228,48 @@ def choose_message_rate(*, baud: int, bytes_per_message: int, cap_hz: float,
     Returns
     -------
     float
-        Message rate, Hz, at least 1.
+        Message rate, Hz, at least :data:`MIN_MESSAGE_RATE_HZ` even where the budget gives
+        less (a slower rate would make each report span more than the autopilots accept;
+        :func:`line_problem` says when the line cannot carry even that).
     """
     budget = baud / 10.0 * busy_fraction - reserved_bytes_per_s
-    return float(max(1, min(int(cap_hz), math.floor(budget / bytes_per_message))))
+    return float(max(MIN_MESSAGE_RATE_HZ, min(int(cap_hz), math.floor(budget / bytes_per_message))))
+
+
+def line_problem(*, baud: int, report: str, bytes_per_report: int, reserved_bytes_per_s: float,
+                 reserved: str = "") -> str | None:
+    """Why a line of ``baud`` cannot carry :data:`MIN_MESSAGE_RATE_HZ` reports (a text that
+    continues "baud N is "), or None.
+
+    Parameters
+    ----------
+    baud : int
+        Line rate, bit/s (8N1: ``baud / 10`` bytes/s).
+    report : str
+        The report's message names, for the text.
+    bytes_per_report : int
+        Bytes on the wire of one report.
+    reserved_bytes_per_s : float
+        Traffic that is always sent (heartbeats), bytes/s; ``reserved`` names it.
+    """
+    need = MIN_MESSAGE_RATE_HZ * bytes_per_report + reserved_bytes_per_s
+    if need <= baud / 10.0:
+        return None
+    # Suggest a rate whose 60 % budget holds them, as the rate choice wants.
+    fits = [b for b in STANDARD_BAUDS if b / 10.0 * BUSY_FRACTION >= need]
+    advice = f"use {fits[0]} baud or more" if fits else "use a faster line"
+    return (f"too low: at least {MIN_MESSAGE_RATE_HZ:g} {report} reports per second "
+            f"({bytes_per_report} bytes each; a report may span at most 0.45 s, ArduPilot needs a flow "
+            f"message every < 0.5 s){reserved} need {need:.0f} bytes/s, and {baud} baud carries "
+            f"{baud / 10.0:.0f} bytes/s (8N1); {advice} on both ends")
 
 
 class FlowLink:
     """Base class of the protocol links (see the module docstring for the timing model).
 
-    Subclasses set :attr:`protocol`, implement :meth:`_encode_flow` and may override
-    :meth:`_bytes_per_report`, :meth:`_default_rate_cap`, :meth:`_handle_rx`,
-    :meth:`_periodic`, :meth:`_on_open`.
+    Subclasses set :attr:`protocol`, implement :meth:`line_need` and :meth:`_encode_flow`
+    and may override :meth:`_default_rate_cap`, :meth:`_reserved_bytes_per_s`,
+    :meth:`_handle_rx`, :meth:`_periodic`, :meth:`_on_open`.
     """
 
     protocol = "?"
@@ -254,6 +301,7 @@ class FlowLink:
             except OSError as exc:
                 log.warning("message log %s cannot be created: %s; not logging", config.message_log, exc)
         self._last_submit_host_us: int | None = None    # host time of the last submit()
+        self._last_capture_host_us: int | None = None   # capture_host_us of that frame
         self._submit_intervals = RecentIntervals()      # host µs between submits
         self._slow_stream_logged = False
         self._last_flow_host_us: int | None = None
@@ -269,8 +317,22 @@ class FlowLink:
         self.transport.pump()
 
     # -- configuration hooks ---------------------------------------------------------
-    def _bytes_per_report(self) -> int:
+    @classmethod
+    def line_need(cls, config: LinkConfig) -> tuple[str, int, float, str]:
+        """What the line must carry for ``config`` whatever else is configured: the report's
+        message names, its bytes on the wire, and the bytes/s of traffic always sent next to
+        it with their description (see :func:`line_problem`)."""
         raise NotImplementedError
+
+    @classmethod
+    def line_problem(cls, config: LinkConfig) -> str | None:
+        """Why ``config.baud`` cannot carry this link's reports at all, or None."""
+        report, size, reserved, what = cls.line_need(config)
+        return line_problem(baud=config.baud, report=report, bytes_per_report=size,
+                            reserved_bytes_per_s=reserved, reserved=what)
+
+    def _bytes_per_report(self) -> int:
+        return self.line_need(self.config)[1]
 
     def _default_rate_cap(self) -> float:
         return 100.0
@@ -291,6 +353,12 @@ class FlowLink:
 
     def _choose_rate(self) -> float:
         cfg = self.config
+        problem = self.line_problem(cfg)
+        if problem:
+            # Refused, not warned: 3 reports/s that the line cannot carry age out in the
+            # queue, and the autopilot sees a sensor that keeps timing out (the daemon checks
+            # this at start-up and exits 2, naming [link] baud).
+            raise ValueError(f"{self.protocol} on {cfg.port}: baud {cfg.baud} is {problem}")
         budget_rate = choose_message_rate(baud=cfg.baud, bytes_per_message=self._bytes_per_report(),
                                           cap_hz=self._default_rate_cap(),
                                           reserved_bytes_per_s=self._reserved_bytes_per_s())
@@ -303,9 +371,12 @@ class FlowLink:
                 log.warning("%s on %s: %.0f Hz needs %.0f %% of %d baud (budget %.0f %%): expect drops; "
                             "%.0f Hz would fit", self.protocol, cfg.port, rate, 100 * load, cfg.baud,
                             100 * BUSY_FRACTION, budget_rate)
-        if rate < 10:
-            log.warning("%s on %s: only %.0f flow messages/s fit in %d baud; raise the baud rate",
-                        self.protocol, cfg.port, rate, cfg.baud)
+        if rate < 10 and cfg.message_rate_hz is None:  # (a configured rate is a choice, not a shortfall)
+            load = (rate * self._bytes_per_report() + self._reserved_bytes_per_s()) / (cfg.baud / 10.0)
+            over = (f" ({100 * load:.0f} % of the line, over the {100 * BUSY_FRACTION:.0f} % budget: the "
+                    f"fewest that keep a report within 0.45 s)" if load > BUSY_FRACTION else "")
+            log.warning("%s on %s: only %.0f flow messages/s fit in %d baud%s; raise the baud rate",
+                        self.protocol, cfg.port, rate, cfg.baud, over)
         log.info("%s on %s: up to %.0f flow messages/s (%d bytes each) at %d baud", self.protocol, cfg.port,
                  min(rate, self._rate_ceiling_hz()), self._bytes_per_report(), cfg.baud)
         return rate
@@ -387,6 +458,13 @@ class FlowLink:
         self.stats["frames"] += 1
         self._note_submit(now)
         integ = self.integrator
+        dt = int(sample.timestamp_us) - (integ.last_timestamp_us or 0)
+        if (integ.elapsed_us > 0 and 0 < dt <= integ.gap_threshold_us
+                and integ.elapsed_us + dt > integ.max_interval_us):
+            # A late frame (jitter past the nominal interval the schedule below plans with)
+            # would stretch the pending report beyond what the autopilots accept: it goes
+            # out now, ending at the previous frame, and this frame starts the next one.
+            self._emit_pending(capture_host_us=self._last_capture_host_us, now=now)
         started = not integ.add_frame(timestamp_us=sample.timestamp_us, flow_x_px=sample.flow_x,
                                       flow_y_px=sample.flow_y, quality=sample.quality)
         if started:
@@ -401,19 +479,28 @@ class FlowLink:
         else:
             # Emit on frame boundaries: a quarter-frame tolerance keeps e.g. 50 Hz at 100 fps
             # from slipping to every third frame on jitter.
-            tolerance = 0.25 * (integ.nominal_interval_us or 0.0)
-            due = max(self.period_us - tolerance, self.min_report_span_us)
+            nominal = integ.nominal_interval_us or 0.0
+            tolerance = 0.25 * nominal
+            # ... and no later than the frame after which the next one would take the report
+            # past max_interval_us (slow frames at a low rate: 4 fps at 3 Hz would span 0.5 s).
+            due = max(min(self.period_us - tolerance, integ.max_interval_us - nominal),
+                      self.min_report_span_us)
             if integ.elapsed_us > 0 and integ.elapsed_us >= due:
-                interval = integ.take()
-                if self._keepalive_in_interval:
-                    # The autopilot's interval began at the keep-alive, these counts earlier.
-                    interval = replace(interval, quality=0)
-                    self._keepalive_in_interval = False
-                self._emit(interval, capture_host_us=int(sample.capture_host_us), now=now)
+                self._emit_pending(capture_host_us=int(sample.capture_host_us), now=now)
+        self._last_capture_host_us = int(sample.capture_host_us)
         # After the flow message: the extras must not delay it on the wire.
         if self.config.extra_values and sample.extras:
             self._send_extras(sample)
-        self.transport.pump()
+        self.transport.pump(now)
+
+    def _emit_pending(self, *, capture_host_us: int | None, now: int) -> None:
+        """Send the pending interval as a report."""
+        interval = self.integrator.take()
+        if self._keepalive_in_interval:
+            # The autopilot's interval began at the keep-alive, these counts earlier.
+            interval = replace(interval, quality=0)
+            self._keepalive_in_interval = False
+        self._emit(interval, capture_host_us=capture_host_us, now=now)
 
     def _note_submit(self, now: int) -> None:
         """Track the host interval between submitted frames; warn once when it is longer

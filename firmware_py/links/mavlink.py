@@ -32,10 +32,10 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from ..angular import FlowInterval
 from ..clock import host_us
-from .base import FlowLink, LinkConfig, carry_round
+from .base import BUSY_FRACTION, FlowLink, LinkConfig, carry_round, choose_message_rate
 
 __all__ = ["MavlinkLink", "new_encoder", "pack", "MESSAGE_SETS", "WIRE_BYTES",
-           "HEARTBEAT_TYPE", "encode_heartbeat"]
+           "HEARTBEAT_TYPE", "encode_heartbeat", "message_set_for"]
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +43,11 @@ log = logging.getLogger(__name__)
 WIRE_BYTES = {"HEARTBEAT": 21, "OPTICAL_FLOW": 46, "OPTICAL_FLOW_RAD": 56, "NAMED_VALUE_FLOAT": 30}
 #: Extra values budgeted when ``extra_values`` is on (expansion, time to contact, 2 balances).
 EXTRA_VALUES_BUDGETED = 4
+#: The extra values never take the flow below this many reports per second (nor below what
+#: the budget gives the flow alone): the flow flies the vehicle, the extras are for watching.
+EXTRAS_KEEP_FLOW_HZ = 10.0
+#: Extra values thinned below this many rounds per second are left out altogether.
+EXTRAS_MIN_RATE_HZ = 0.5
 
 #: Flow messages per autopilot.
 MESSAGE_SETS = {
@@ -63,6 +68,14 @@ PX4_MIN_REPORT_SPAN_US = math.ceil(1e6 / PX4_SENS_FLOW_RATE_HZ)
 HEARTBEAT_TYPE = mavlink2.MAV_TYPE_ONBOARD_CONTROLLER  # 18: no MAV_TYPE for a flow sensor
 
 _INT16_MAX = 32767
+
+
+def message_set_for(config: LinkConfig) -> tuple[str, ...]:
+    """The flow messages a config sends: the autopilot's set; an explicit
+    ``protocol="mavlink"`` sends both unless the autopilot is "ardupilot" or "px4"."""
+    if config.protocol == "mavlink" and config.autopilot not in ("ardupilot", "px4"):
+        return MESSAGE_SETS["both"]
+    return MESSAGE_SETS.get(config.autopilot, MESSAGE_SETS["both"])
 
 
 def new_encoder(*, sysid: int, compid: int) -> mavlink2.MAVLink:
@@ -104,12 +117,7 @@ class MavlinkLink(FlowLink):
     protocol = "mavlink"
 
     def __init__(self, config: LinkConfig):
-        if config.protocol == "mavlink" and config.autopilot not in ("ardupilot", "px4"):
-            self.message_set = MESSAGE_SETS["both"]
-        elif config.protocol == "mavlink" and config.autopilot in ("ardupilot", "px4"):
-            self.message_set = MESSAGE_SETS[config.autopilot]
-        else:
-            self.message_set = MESSAGE_SETS.get(config.autopilot, MESSAGE_SETS["both"])
+        self.message_set = message_set_for(config)
         # PX4 merges shorter OPTICAL_FLOW_RAD reports (see PX4_SENS_FLOW_RATE_HZ)
         self.min_report_span_us = PX4_MIN_REPORT_SPAN_US if "OPTICAL_FLOW_RAD" in self.message_set else 0.0
         self.encoder = new_encoder(sysid=config.sysid, compid=config.compid)
@@ -118,7 +126,8 @@ class MavlinkLink(FlowLink):
         self._next_heartbeat_us: int | None = None
         self._heartbeat_period_us = int(1e6 / config.heartbeat_rate_hz)
         self._seen_systems: set[tuple[int, int]] = set()
-        self._next_extras_us: int | None = None
+        self._last_extras_us: int | None = None  # capture time of the last extra values sent
+        self.extras_rate_hz = 0.0                  # chosen with the flow rate (_choose_rate)
         self._distance = (float(config.ground_distance_m)
                           if config.ground_distance_m is not None and config.ground_distance_m >= 0 else -1.0)
         super().__init__(config)
@@ -132,18 +141,56 @@ class MavlinkLink(FlowLink):
         return parser
 
     # -- rate ------------------------------------------------------------------------
-    def _bytes_per_report(self) -> int:
-        return sum(WIRE_BYTES[name] for name in self.message_set)
+    @classmethod
+    def line_need(cls, config: LinkConfig) -> tuple[str, int, float, str]:
+        names = message_set_for(config)
+        hz = config.heartbeat_rate_hz
+        return ("+".join(names), sum(WIRE_BYTES[name] for name in names), WIRE_BYTES["HEARTBEAT"] * hz,
+                f" and {hz:g} HEARTBEAT per second ({WIRE_BYTES['HEARTBEAT']} bytes; heartbeat_rate_hz)")
 
     def _reserved_bytes_per_s(self) -> float:
-        extras = (WIRE_BYTES["NAMED_VALUE_FLOAT"] * EXTRAS_RATE_HZ * EXTRA_VALUES_BUDGETED
-                  if self.config.extra_values else 0.0)
+        extras = WIRE_BYTES["NAMED_VALUE_FLOAT"] * EXTRA_VALUES_BUDGETED * self.extras_rate_hz
         return WIRE_BYTES["HEARTBEAT"] * self.config.heartbeat_rate_hz + extras
 
     def _default_rate_cap(self) -> float:
         return PX4_SENS_FLOW_RATE_HZ if self.min_report_span_us else 100.0
 
+    def _choose_extras_rate(self) -> float:
+        """Extra-value rounds per second: :data:`EXTRAS_RATE_HZ` where the budget has room
+        for them next to the flow, fewer (or none) where it has not.
+
+        The flow keeps the configured ``message_rate_hz``, or without one the smaller of
+        :data:`EXTRAS_KEEP_FLOW_HZ` and what the budget gives the flow alone; the extras get
+        what is left of the 60 % budget. (Reserved first, at 9600 baud their 600 bytes/s
+        would leave the flow the 3 Hz minimum.)
+        """
+        cfg = self.config
+        if not cfg.extra_values:
+            return 0.0
+        heartbeat = WIRE_BYTES["HEARTBEAT"] * cfg.heartbeat_rate_hz
+        size = self._bytes_per_report()
+        if cfg.message_rate_hz is not None:
+            flow_hz = min(float(cfg.message_rate_hz), self._rate_ceiling_hz())
+        else:
+            flow_hz = min(EXTRAS_KEEP_FLOW_HZ, choose_message_rate(
+                baud=cfg.baud, bytes_per_message=size, cap_hz=self._default_rate_cap(),
+                reserved_bytes_per_s=heartbeat))
+        per_round = WIRE_BYTES["NAMED_VALUE_FLOAT"] * EXTRA_VALUES_BUDGETED
+        left = cfg.baud / 10.0 * BUSY_FRACTION - heartbeat - flow_hz * size
+        rate = min(EXTRAS_RATE_HZ, math.floor(10 * max(0.0, left) / per_round) / 10)  # 0.1 Hz steps
+        if rate < EXTRAS_RATE_HZ:
+            done = (f"sending them {rate:g} times per second instead of {EXTRAS_RATE_HZ:g}"
+                    if rate >= EXTRAS_MIN_RATE_HZ else "not sending them")
+            log.warning("%s on %s: extra_values: at %d baud the NAMED_VALUE_FLOATs (%d x %d bytes, %g per "
+                        "second: %.0f bytes/s) do not fit next to %.0f flow messages/s in the %.0f bytes/s "
+                        "budget; %s (the flow comes first); raise the baud rate or set extra_values = false",
+                        self.protocol, cfg.port, cfg.baud, EXTRA_VALUES_BUDGETED,
+                        WIRE_BYTES["NAMED_VALUE_FLOAT"], EXTRAS_RATE_HZ, per_round * EXTRAS_RATE_HZ, flow_hz,
+                        cfg.baud / 10.0 * BUSY_FRACTION, done)
+        return rate if rate >= EXTRAS_MIN_RATE_HZ else 0.0
+
     def _choose_rate(self) -> float:
+        self.extras_rate_hz = self._choose_extras_rate()
         rate = super()._choose_rate()
         if self.min_report_span_us and rate > PX4_SENS_FLOW_RATE_HZ:
             log.warning("%s on %s: message_rate_hz %.0f: OPTICAL_FLOW_RAD reports span at least %.1f ms "
@@ -201,10 +248,15 @@ class MavlinkLink(FlowLink):
         shows up in MAVProxy, QGroundControl's inspector and the autopilot's log (ArduPilot
         logs it as NVF; Lua scripts can read it).
         """
+        if not self.extras_rate_hz:
+            return  # no room for them at this baud rate (warned in _choose_extras_rate)
         ts = int(sample.timestamp_us)
-        if self._next_extras_us is not None and ts < self._next_extras_us:
+        last = self._last_extras_us
+        # A capture clock that went back (a reopened OAK restarts near 0) starts the schedule
+        # afresh; measured from the old time, the next round would wait for the old uptime.
+        if last is not None and last <= ts < last + 1e6 / self.extras_rate_hz:
             return
-        self._next_extras_us = ts + int(1e6 / EXTRAS_RATE_HZ)
+        self._last_extras_us = ts
         now = host_us()
         for name, value in sample.extras:
             msg = self.encoder.named_value_float_encode(

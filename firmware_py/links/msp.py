@@ -95,8 +95,9 @@ class MspLink(FlowLink):
         self._counts_per_rad = config.msp_counts_per_degree * 180.0 / math.pi
         super().__init__(config)
 
-    def _bytes_per_report(self) -> int:
-        return WIRE_BYTES
+    @classmethod
+    def line_need(cls, config: LinkConfig) -> tuple[str, int, float, str]:
+        return "MSP2_SENSOR_OPTIC_FLOW", WIRE_BYTES, 0.0, ""
 
     def _default_rate_cap(self) -> float:
         return 50.0

@@ -12,7 +12,13 @@
   ``out_waiting``) is checked, and nothing more is handed over while it holds more than
   ``max_kernel_lag_s`` worth of bytes; our own queue then ages out instead.
 * A vanished port (USB adapter unplugged, pty closed) closes the descriptor; :meth:`service`
-  reopens it with exponential back-off. Every log line and error text names the port.
+  reopens it with exponential back-off (0.5 s doubling to 8 s). The back-off starts again
+  from 0.5 s only once a port has stayed open for ``stable_after_s`` (5 s): a port that
+  opens but fails at once (a dying adapter, a hung-up line) is retried ever more slowly, not
+  every 0.5 s forever. The first loss is a warning, the first repeat says the port keeps
+  failing; further repeats are debug lines with a warning summary every ``summary_s``
+  (60 s). Times are the ``now_us`` the caller passes (the link's host clock). Every log line
+  and error text names the port.
 """
 
 from __future__ import annotations
@@ -96,6 +102,12 @@ class SerialTransport:
         transmit time, s.
     reopen_initial_s, reopen_max_s : float
         Back-off between reopen attempts: starts at the first, doubles up to the second, s.
+    stable_after_s : float
+        A port open this long without failing is healthy again: the back-off and the
+        warnings start afresh at its next loss, s.
+    summary_s : float
+        While a port keeps failing right after each open, one warning summary per this
+        many seconds (the single failures are debug lines), s.
     on_open : callable, optional
         Called after every successful (re)open, e.g. to queue a heartbeat.
     on_sent : callable, optional
@@ -105,6 +117,7 @@ class SerialTransport:
     def __init__(self, *, port: str | None, baud: int, stats: dict, max_queue_messages: int = 16,
                  max_age_s: float = 0.25, max_kernel_lag_s: float = 0.05,
                  reopen_initial_s: float = 0.5, reopen_max_s: float = 8.0,
+                 stable_after_s: float = 5.0, summary_s: float = 60.0,
                  on_open=None, on_sent=None):
         self.port = port
         self.baud = int(baud)
@@ -114,6 +127,8 @@ class SerialTransport:
         self.kernel_limit_bytes = max(64, int(self.baud / 10 * max_kernel_lag_s))
         self.reopen_initial_us = int(reopen_initial_s * 1e6)
         self.reopen_max_us = int(reopen_max_s * 1e6)
+        self.stable_after_us = int(stable_after_s * 1e6)
+        self.summary_us = int(summary_s * 1e6)
         self.on_open = on_open
         self.on_sent = on_sent
         self.latencies_us: deque[int] = deque(maxlen=4096)
@@ -126,6 +141,10 @@ class SerialTransport:
         self._backoff_us = self.reopen_initial_us
         self._ever_opened = False
         self._failures_logged = 0
+        self._opened_us: int | None = None    # when the open port was opened, None once healthy
+        self._losses = 0                      # losses since the port was last healthy
+        self._summary_due_us: int | None = None
+        self._since_summary = 0               # repeated losses not yet in a summary
         self._out_waiting_works = True
         for key in ("bytes_written", "dropped_messages", "stale_messages", "reopen_count", "open_failures",
                     "write_errors", "read_errors", "rx_bytes"):
@@ -163,13 +182,16 @@ class SerialTransport:
             self._backoff_us = min(self.reopen_max_us, self._backoff_us * 2)
             return False
         self._serial, self._fd = ser, fd
-        self._backoff_us = self.reopen_initial_us
-        self._failures_logged = 0
+        # (the back-off and the open-failure warnings start afresh only once the port has
+        # stayed open: _note_stable)
+        self._opened_us = now_us
         self._out_waiting_works = True
         self.stats["port_open"] = True
         if self._ever_opened:
             self.stats["reopen_count"] += 1
-            log.warning("serial port %s reopened (%d reopen(s) so far)", self.port, self.stats["reopen_count"])
+            # a port that keeps failing right after each open: its reopens are debug lines too
+            (log.warning if self._losses < 2 else log.debug)(
+                "serial port %s reopened (%d reopen(s) so far)", self.port, self.stats["reopen_count"])
         else:
             log.info("serial port %s open at %d baud", self.port, self.baud)
         self._ever_opened = True
@@ -182,10 +204,50 @@ class SerialTransport:
         # The first failure of a series is a warning, the retries are debug noise.
         (log.warning if first else log.debug)("%s", text)
 
+    def _note_stable(self, now_us: int) -> None:
+        """A port open for ``stable_after_s`` is healthy: its next loss starts the back-off
+        and the warnings afresh."""
+        if self._opened_us is None or now_us - self._opened_us < self.stable_after_us:
+            return
+        if self._losses > 1:
+            log.info("serial port %s has stayed open for %.0f s after %d failure(s) in a row: healthy again",
+                     self.port, self.stable_after_us / 1e6, self._losses)
+        self._opened_us = None
+        self._backoff_us = self.reopen_initial_us
+        self._failures_logged = 0
+        self._losses = self._since_summary = 0
+        self._summary_due_us = None
+
     def _lost(self, what: str, exc: BaseException, now_us: int | None) -> None:
-        """The port failed: close it and schedule a reopen."""
+        """The port failed: close it and schedule a reopen, later after every failure that
+        comes before the port was healthy again (:meth:`_note_stable`)."""
         now_us = host_us() if now_us is None else now_us
-        self._fail(f"serial port {self.port}: {what} failed ({exc}); closing, will reopen")
+        self._note_stable(now_us)
+        self._losses += 1
+        text = f"serial port {self.port}: {what} failed ({exc}); closing, will reopen"
+        if self._losses == 1:
+            self._fail(text)
+        else:
+            # Reopened but failed again before it was healthy: not a recovery, so the
+            # back-off keeps doubling, and only the first repeat is a warning.
+            self._backoff_us = min(self.reopen_max_us, self._backoff_us * 2)
+            up_s = (now_us - self._opened_us) / 1e6 if self._opened_us is not None else 0.0
+            if self._losses == 2:
+                self._fail(f"{text} (again, {up_s:.1f} s after reopening: the port fails soon after each "
+                           f"open; retrying with back-off up to {self.reopen_max_us / 1e6:.0f} s, repeats "
+                           f"are logged at debug level with a summary every {self.summary_us / 1e6:.0f} s)")
+                self._summary_due_us = now_us + self.summary_us
+            else:
+                self._fail(text, first=False)
+                self._since_summary += 1
+                if now_us >= self._summary_due_us:
+                    log.warning("serial port %s still fails soon after each open: %d failure(s) in the last "
+                                "%.0f s (last: %s failed: %s); next attempt in %.0f s", self.port,
+                                self._since_summary, (now_us - self._summary_due_us + self.summary_us) / 1e6,
+                                what, exc, self._backoff_us / 1e6)
+                    self._since_summary = 0
+                    self._summary_due_us = now_us + self.summary_us
+        self._opened_us = None
         self._close_fd()
         self._next_open_us = now_us + self._backoff_us
         # The partly written message is lost with the port: the peer's parser resynchronises.
@@ -342,4 +404,6 @@ class SerialTransport:
         """Reopen if needed and push queued bytes (never blocks, never raises)."""
         if self._fd is None:
             self.try_open(now_us)
+        else:
+            self._note_stable(now_us)
         self.pump(now_us)
