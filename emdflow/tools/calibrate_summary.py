@@ -137,6 +137,7 @@ which is one reason ``ψ`` is a dimension).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import sys
 import time
@@ -749,6 +750,12 @@ def score(data, options=None, out=print):
         if m.any():
             out(f"    {lo:3d}-{hi - 1:3d}   | {int(m.sum()):6d} | {np.median(err[m, 0]) * 100:5.1f} % "
                 f"| {np.percentile(err[m, 0], 90) * 100:5.1f} %")
+    rated = qual > 0
+    expected = np.array([s.expected_error for s in sums])
+    usable = rated & np.isfinite(expected)
+    if usable.any():  # how the summary's own error estimate compares with the error
+        out(f"  expected error: median {np.median(expected[usable]) * 100:.1f} % against a median error of "
+            f"{np.median(err[usable, 0]) * 100:.1f} % (frames with quality > 0 and a likelihood fit)")
     if "flight_frames" in data:
         _print_flight_bias(sums, flows, int(data["flight_frames"]), out)
     if "texture" in data:
@@ -756,7 +763,6 @@ def score(data, options=None, out=print):
         _print_texture_direction(err, flows, np.asarray(data["texture"]), out)
         _print_line_share(sums, flows, np.asarray(data["texture"]), out)
     _print_search_check(fields, sums, flows, err, options, out)
-    rated = qual > 0
     if rated.sum() > 2:
         from scipy.stats import spearmanr
 
@@ -914,6 +920,35 @@ def _print_flight_bias(sums, flows, per_flight: int, out=print):
         f"{np.median(speed[ok].std(axis=1)) * 100:.1f} %")
 
 
+def summary_option_values(items) -> dict:
+    """``--summary-opt KEY=VALUE`` items as SummaryOptions keywords, each value converted to
+    its field's type (ValueError naming what is wrong)."""
+    from emdflow.summary import SummaryOptions
+
+    fields = {f.name: f for f in dataclasses.fields(SummaryOptions)}
+    out = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep or key not in fields:
+            raise ValueError(f"{item!r}: expected KEY=VALUE with KEY one of {', '.join(fields)}")
+        default = fields[key].default
+        try:
+            if isinstance(default, bool):
+                if text.lower() not in ("true", "false", "1", "0"):
+                    raise ValueError
+                value = text.lower() in ("true", "1")
+            elif isinstance(default, int):
+                value = int(text)
+            elif isinstance(default, str):
+                value = text
+            else:  # floats, and top_speed (None or a number)
+                value = None if text.lower() == "none" else float(text)
+        except ValueError:
+            raise ValueError(f"{item!r}: {text!r} is not a value for {key}") from None
+        out[key] = value
+    return out
+
+
 def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: str = "opencl",
              save: str | None = None, data: str | None = None, model: str = "paper",
              contrast: float = 1.0, drift: float = 0.0, options=None, evidence_row_step: int = 0,
@@ -1027,6 +1062,10 @@ def main(argv=None):
     e.add_argument("--noise", type=float, default=2.0,
                    help="sensor noise of the flights, standard deviation in gray levels (default "
                         "2; the calibration flights draw it from 1-3)")
+    e.add_argument("--summary-opt", action="append", default=[], metavar="KEY=VALUE",
+                   help="a SummaryOptions field for the summary (repeatable), e.g. the former "
+                        "quality weights: --summary-opt overdispersion=0.7 --summary-opt "
+                        "disagreement_weight=0.5")
     e.add_argument("--textures", default=",".join(EVALUATION_TEXTURES),
                    help="comma-separated grounds of the flights (default: the evaluation set, "
                         "which the calibration never saw; the calibration set "
@@ -1062,7 +1101,11 @@ def main(argv=None):
     else:
         from emdflow.summary import SummaryOptions
 
-        options = SummaryOptions(likelihood=not a.ioc, ground=a.ground)
+        try:
+            options = SummaryOptions(likelihood=not a.ioc, ground=a.ground,
+                                     **summary_option_values(a.summary_opt))
+        except (TypeError, ValueError) as exc:
+            ap.error(f"--summary-opt: {exc}")
         from emdflow.tools.video_io import parse_size
 
         try:
