@@ -96,7 +96,8 @@ def run_flow(args) -> int:
     import numpy as np
 
     from emdflow import summarize
-    from emdflow.tools import ToolError, check_count, check_positive, make_estimator, missing_folder, progress_bar
+    from emdflow.tools import (ToolError, check_count, check_positive, make_estimator, missing_folder, progress_bar,
+                               refuse_overwrite)
     from emdflow.tools.flo import write_flo
     from emdflow.tools.flowviz import render_flow_frame
     from emdflow.tools.video_io import VideoWriter
@@ -106,6 +107,7 @@ def run_flow(args) -> int:
     for path in (args.npz, args.snapshot):
         if path and (problem := missing_folder(path)):
             raise ToolError(f"{path}: {problem}", 2)
+        refuse_overwrite(args.input, path)
     if args.snapshot:
         import cv2
 

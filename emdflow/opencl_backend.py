@@ -119,12 +119,12 @@ def _device_choice(device):
     return choice or None
 
 
-def _pick_device(choice):
+def _pick_device(choice, *, from_env: bool = False):
     """The device a non-automatic choice names: an index of ``list_devices()`` or a
-    case-insensitive part of its "platform device" name."""
+    case-insensitive part of its "platform device" name; ``from_env``: the choice is
+    EMDFLOW_OPENCL_DEVICE's (its errors say so: the variable is not in the call)."""
     devices = _all_devices()
-    # (the environment's choice is named as such in the errors: it is not in the call)
-    origin = "" if os.environ.get("EMDFLOW_OPENCL_DEVICE") != choice else " (EMDFLOW_OPENCL_DEVICE)"
+    origin = " (EMDFLOW_OPENCL_DEVICE)" if from_env else ""
     if isinstance(choice, int) or choice.strip().isdigit():
         index = int(choice)
         if not 0 <= index < len(devices):
@@ -396,7 +396,7 @@ def _device_with_program(device, layout: _Layout, debug: bool):
         return ctx, queue, _program(ctx, dev, layout, debug)
 
     chosen, (ctx, queue, program) = _first_buildable(
-        [_pick_device(choice)] if choice is not None else _all_devices(), build)
+        [_pick_device(choice, from_env=device is None)] if choice is not None else _all_devices(), build)
     return chosen, ctx, queue, program
 
 

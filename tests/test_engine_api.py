@@ -206,9 +206,13 @@ def test_opencl_devices_and_device_choice(monkeypatch):
     monkeypatch.setenv("EMDFLOW_OPENCL_DEVICE", "7")
     with pytest.raises(ValueError, match=r"7 \(EMDFLOW_OPENCL_DEVICE\) out of range"):
         emdflow.FlowEstimator(64, 48)
-    # the caller's choice wins over the environment's, and is not named after it
+    # the caller's choice wins over the environment's, and is not named after it, even when
+    # the two are the same text
     with pytest.raises(ValueError, match=r"index 9 out of range"):
         emdflow.FlowEstimator(64, 48, device=9)
+    with pytest.raises(ValueError, match=r"device '7' not found|index 7 out of range") as info:
+        emdflow.FlowEstimator(64, 48, device="7")
+    assert "EMDFLOW_OPENCL_DEVICE" not in str(info.value)
 
 
 def test_missing_opencl_platform_says_how_to_install(monkeypatch):

@@ -421,7 +421,7 @@ def test_the_quality_weights_rank_the_error_better_than_the_former_ones():
     assert ranking["now"] > 0.5 and ranking["now"] > ranking["former"] + 0.07
 
 
-def test_evaluate_takes_summary_options_by_name():
+def test_evaluate_takes_summary_options_by_name(monkeypatch):
     """``calibrate_summary evaluate --summary-opt KEY=VALUE`` (how the README's figures with
     the former quality weights are re-run): typed values, and a clear usage error for an
     unknown key or a value of the wrong kind."""
@@ -439,6 +439,15 @@ def test_evaluate_takes_summary_options_by_name():
     with pytest.raises(SystemExit) as exit_info:
         C.main(["evaluate", "--data", "unused.npz", "--summary-opt", "overdispersion=-1"])
     assert exit_info.value.code == 2
+    # likelihood and ground given both ways: --summary-opt's wins (it used to be a TypeError)
+    seen = {}
+    def evaluate(*args, **kwargs):  # (main passes the options tenth, by position)
+        seen["options"] = kwargs.get("options", args[9] if len(args) > 9 else None)
+
+    monkeypatch.setattr(C, "evaluate", evaluate)
+    C.main(["evaluate", "--data", "unused.npz", "--ground", "lines", "--summary-opt", "ground=edges",
+            "--summary-opt", "likelihood=false"])
+    assert seen["options"].ground == "edges" and seen["options"].likelihood is False
 
 
 def test_summarize_refuses_options_that_are_not_summary_options():

@@ -665,6 +665,10 @@ def test_render_writes_the_frames_the_daemon_reads_back_exactly(tmp_path, capsys
     assert main(["frames", str(out), "-o", str(out), "--backend", "numpy"]) == 2
     _one_line_error(capsys, "would overwrite the input")
     assert out.read_bytes() == before
+    for extra in (["--npz", str(out)], ["--snapshot", str(out)]):  # nor any other output of flow
+        assert main(["flow", str(out), "-o", str(tmp_path / "o.avi"), *extra, "--backend", "numpy"]) == 2
+        _one_line_error(capsys, "would overwrite the input")
+    assert out.read_bytes() == before
     for argv, option in ((["frames", str(out), "--max-frames", "0"], "--max-frames 0"),
                          (["flow", str(out), "-o", str(tmp_path / "o.avi"), "--max-frames", "-1"], "--max-frames -1"),
                          (["flow", str(out), "-o", str(tmp_path / "o.avi"), "--upscale", "0"], "--upscale 0")):

@@ -752,10 +752,11 @@ def score(data, options=None, out=print):
                 f"| {np.percentile(err[m, 0], 90) * 100:5.1f} %")
     rated = qual > 0
     expected = np.array([s.expected_error for s in sums])
-    usable = rated & np.isfinite(expected)
+    # (a static frame's expected error is 0 by definition: not an estimate of its error)
+    usable = rated & np.isfinite(expected) & ~np.array([s.static for s in sums], bool)
     if usable.any():  # how the summary's own error estimate compares with the error
         out(f"  expected error: median {np.median(expected[usable]) * 100:.1f} % against a median error of "
-            f"{np.median(err[usable, 0]) * 100:.1f} % (frames with quality > 0 and a likelihood fit)")
+            f"{np.median(err[usable, 0]) * 100:.1f} % (frames with quality > 0, not static)")
     if "flight_frames" in data:
         _print_flight_bias(sums, flows, int(data["flight_frames"]), out)
     if "texture" in data:
@@ -1101,9 +1102,9 @@ def main(argv=None):
     else:
         from emdflow.summary import SummaryOptions
 
-        try:
-            options = SummaryOptions(likelihood=not a.ioc, ground=a.ground,
-                                     **summary_option_values(a.summary_opt))
+        try:  # (--summary-opt likelihood=... and ground=... override --ioc and --ground)
+            options = SummaryOptions(**{"likelihood": not a.ioc, "ground": a.ground,
+                                        **summary_option_values(a.summary_opt)})
         except (TypeError, ValueError) as exc:
             ap.error(f"--summary-opt: {exc}")
         from emdflow.tools.video_io import parse_size
