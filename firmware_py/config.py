@@ -15,7 +15,7 @@ from pathlib import Path
 
 from emdflow.params import MODELS
 
-from .links.base import AUTOPILOT_PROTOCOLS, MIN_MESSAGE_RATE_HZ
+from .links.base import AUTOPILOT_PROTOCOLS, MIN_MESSAGE_RATE_HZ, MIN_RATE_REASON
 
 __all__ = ["Config", "SourceConfig", "OpticsConfig", "EngineConfig", "LinkConfigSection",
            "DaemonConfig", "ConfigError", "load_config", "SECTIONS"]
@@ -26,7 +26,7 @@ class ConfigError(ValueError):
 
 
 def _opt(default=None, *, choices=None, minimum=None, maximum=None, doc="", why=""):
-    # why: the reason for the range, appended to an out-of-range error
+    # why: the reason for the minimum, appended to a too-low error (not to a too-high one)
     return dataclasses.field(default=default, metadata=dict(choices=choices, minimum=minimum,
                                                             maximum=maximum, doc=doc, why=why))
 
@@ -109,8 +109,7 @@ class LinkConfigSection:
     compid: int = _opt(158, minimum=1, maximum=255, doc="MAVLink component id")
     sensor_id: int = _opt(0, minimum=0, maximum=255, doc="flow sensor id")
     message_rate_hz: float | None = _opt(None, minimum=MIN_MESSAGE_RATE_HZ, maximum=1000.0, doc="flow message rate",
-                                         why="a report may span at most 0.45 s: ArduPilot needs a flow "
-                                             "message every < 0.5 s")
+                                         why=MIN_RATE_REASON)
     heartbeat_rate_hz: float = _opt(1.0, minimum=0.1, maximum=50.0, doc="heartbeat rate")
     ground_distance_m: float | None = _opt(None, minimum=0.0, maximum=1000.0, doc="fixed ground distance, m")
     message_log: str | None = _opt(None, doc="CSV / JSON-lines log of sent messages")
@@ -260,7 +259,7 @@ def _check(cls: type, key: str, value, where: str):
     if meta.get("minimum") is not None and value < meta["minimum"]:
         raise ConfigError(f"{where} = {value!r}: must be >= {meta['minimum']}{why}")
     if meta.get("maximum") is not None and value > meta["maximum"]:
-        raise ConfigError(f"{where} = {value!r}: must be <= {meta['maximum']}{why}")
+        raise ConfigError(f"{where} = {value!r}: must be <= {meta['maximum']}")
     return value
 
 

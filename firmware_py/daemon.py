@@ -499,11 +499,12 @@ class Daemon:
             raise ConfigError(str(exc) if "(EMDFLOW_OPENCL_DEVICE)" in str(exc) else f"[engine]: {exc}") from None
 
     def _default_link(self, focal_length_px: float):
-        from .links import LinkConfig, open_link
+        from .links import LinkConfig, line_problem, open_link
 
         c = self.config.link
-        try:
-            return open_link(LinkConfig(
+        where = f"{self.config.path or 'configuration'}: [link]"
+        try:  # the settings' own checks: a ValueError here is a setting (exit 2, no restart)
+            config = LinkConfig(
                 port=c.port, baud=c.baud, autopilot=self.config.link_autopilot(), protocol=c.protocol,
                 focal_length_px=focal_length_px,
                 mounting_rotation_deg=self.config.optics.mounting_rotation_deg,
@@ -511,9 +512,13 @@ class Daemon:
                 sysid=c.sysid, compid=c.compid, sensor_id=c.sensor_id,
                 message_rate_hz=c.message_rate_hz, heartbeat_rate_hz=c.heartbeat_rate_hz,
                 ground_distance_m=c.ground_distance_m, message_log=c.message_log,
-                extra_values=c.extra_values, msp_counts_per_degree=c.msp_counts_per_degree))
-        except ValueError as exc:  # a setting (e.g. a baud rate too low): exit 2, no restart
-            raise ConfigError(f"{self.config.path or 'configuration'}: [link] {exc}") from None
+                extra_values=c.extra_values, msp_counts_per_degree=c.msp_counts_per_degree)
+        except ValueError as exc:
+            raise ConfigError(f"{where} {exc}") from None
+        problem = line_problem(config)
+        if problem:  # a baud rate too low for the fewest reports the autopilots use
+            raise ConfigError(f"{where} baud = {c.baud} is {problem}")
+        return open_link(config)  # (anything it raises now is a failure, not a setting)
 
     # -- start-up ---------------------------------------------------------------------
     def _start_source(self) -> SourceKeeper:

@@ -163,14 +163,17 @@ def test_a_port_that_can_never_be_a_serial_port_is_a_configuration_error(tmp_pat
     assert "Traceback" not in result.stderr
 
 
-@pytest.mark.parametrize("autopilot, baud, advice", [("ardupilot", 1200, 4800), ("both", 2400, 9600)])
+@pytest.mark.parametrize("autopilot, baud, advice", [("ardupilot", 2400, 9600), ("px4", 2400, 9600),
+                                                     ("both", 4800, 19200), ("inav", 1200, 2400)])
 def test_a_baud_rate_too_low_for_the_flow_messages_is_a_configuration_error(autopilot, baud, advice):
-    """Not even 3 reports per second (one every 0.33 s; ArduPilot needs one every < 0.5 s)
-    fit: refused at start (exit 2) with the baud rate that would do, not run into timeouts."""
+    """Not even 7 reports per second (ArduPilot's EKF3 and INAV stop using flow older than
+    200 ms) fit: refused at start (exit 2) with the baud rate that would do, not run into
+    timeouts. (These bauds carried the old floor of 3/s.)"""
     result = run_cli(["--source", "synthetic:", "--serial", "/dev/null", "--baud", baud, "--autopilot",
                       autopilot, "--frames", 3], timeout=60)
     assert result.returncode == 2, result.stderr[-2000:]
-    assert f"configuration: [link] baud = {baud} (--baud) is too low: at least 3 " in result.stderr
+    assert f"configuration: [link] baud = {baud} (--baud) is too low: at least 7 " in result.stderr
+    assert "< 200 ms old" in result.stderr
     assert f"use {advice} baud or more on both ends" in result.stderr and "Traceback" not in result.stderr
 
 

@@ -43,8 +43,10 @@ def _write(tmp_path, text):
     ("[camera]\nuri = 'x'\n", "unknown section [camera]"),
     ("[link]\nbaud = 'fast'\n", "[link] baud = 'fast': expected an integer"),
     ("[link]\nbaud = 300\n", "[link] baud = 300: must be >= 1200"),
-    ("[link]\nmessage_rate_hz = 2\n", ("[link] message_rate_hz = 2.0: must be >= 3.0 (a report may span at "
-                                      "most 0.45 s: ArduPilot needs a flow message every < 0.5 s)")),
+    # (3 Hz was the floor: ArduPilot's EKF3 and INAV stop using flow older than 200 ms)
+    ("[link]\nmessage_rate_hz = 6\n", ("[link] message_rate_hz = 6.0: must be >= 7.0 (ArduPilot's EKF3 uses "
+                                      "optical flow only while its newest sample is < 200 ms old, and INAV "
+                                      "drops an MSP flow sensor after 200 ms without an update)")),
     # (DepthAI raised TypeError on such an ISO at every open, and the camera was retried forever)
     ("[source]\ngain = 1e12\n", "[source] gain = 1000000000000.0: must be <= 1000000.0"),
     ("[link]\nautopilot = 'betaflight'\n", "[link] autopilot = 'betaflight': expected one of"),
@@ -71,6 +73,14 @@ def test_bad_config_names_file_and_key(tmp_path, text, needle):
         load_config(path)
     assert str(path) in str(info.value)
     assert needle in str(info.value)
+
+
+def test_a_too_high_message_rate_is_not_given_the_minimums_reason(tmp_path):
+    """The reason for message_rate_hz's minimum (the autopilots' 200 ms) was appended to the
+    too-high error as well, where it explains nothing."""
+    with pytest.raises(ConfigError) as info:
+        load_config(_write(tmp_path, "[link]\nmessage_rate_hz = 5000\n"))
+    assert str(info.value).endswith("[link] message_rate_hz = 5000.0: must be <= 1000.0")
 
 
 def test_missing_file_is_named(tmp_path):

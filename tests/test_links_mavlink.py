@@ -116,19 +116,26 @@ def make_link_no_port(**kw):
     return link
 
 
-def test_a_slow_line_gets_the_fewest_reports_that_keep_a_span_under_half_a_second(caplog):
-    """Below the 60 % budget's 3 reports/s the link still sends 3/s (a report spans at most
-    0.45 s) and says so; a line too slow even for that is refused, naming the baud rate
-    that would do (test_links_timing flies these rates)."""
-    assert make_link_no_port(autopilot="ardupilot", baud=2400).message_rate_hz == 3   # 144 B/s budget: 2
-    assert "66 % of the line, over the 60 % budget" in caplog.text
-    assert make_link_no_port(autopilot="both", baud=4800).message_rate_hz == 3
-    for autopilot, baud, advice in (("ardupilot", 1200, "use 4800 baud"), ("both", 2400, "use 9600 baud")):
-        with pytest.raises(ValueError, match=f"baud {baud} is too low: at least 3 .* reports per second") as info:
+def test_a_slow_line_gets_the_fewest_reports_the_autopilots_accept(caplog):
+    """Below the 60 % budget's 7 reports/s the link still sends 7/s (ArduPilot's EKF3 and
+    INAV stop using flow older than 200 ms; 3/s was the floor) and says so; a line too slow
+    even for that is refused, naming the baud rate that would do (test_links_timing flies
+    these rates)."""
+    # 4800 baud: 288 B/s budget - 21 B/s heartbeat = 5 OPTICAL_FLOW (46 B) or 4 OPTICAL_FLOW_RAD (56 B)
+    assert make_link_no_port(autopilot="ardupilot", baud=4800).message_rate_hz == 7
+    assert "71 % of the line, over the 60 % budget" in caplog.text        # (7 x 46 + 21) / 480
+    assert make_link_no_port(autopilot="px4", baud=4800).message_rate_hz == 7
+    assert make_link_no_port(autopilot="both", baud=9600).message_rate_hz == 7   # 555 / 102 B: 5
+    for autopilot, baud, need, advice in (("ardupilot", 2400, 343, 9600), ("px4", 2400, 413, 9600),
+                                          ("both", 4800, 735, 19200)):
+        with pytest.raises(ValueError, match=f"baud {baud} is too low: at least 7 .* reports per second") as info:
             open_link(LinkConfig(port=None, baud=baud, autopilot=autopilot, focal_length_px=F))
-        assert advice in str(info.value) and f"{baud} baud carries {baud // 10} bytes/s" in str(info.value)
-    with pytest.raises(ValueError, match="message_rate_hz must be None or >= 3"):
-        LinkConfig(port=None, message_rate_hz=2.0)
+        text = str(info.value)
+        assert f"need {need} bytes/s, and {baud} baud carries {baud // 10} bytes/s" in text
+        assert f"use {advice} baud or more on both ends" in text and "< 200 ms old" in text
+    with pytest.raises(ValueError, match=r"message_rate_hz must be None or >= 7 \(ArduPilot's EKF3 .* 200 ms"):
+        LinkConfig(port=None, message_rate_hz=6.9)
+    assert LinkConfig(port=None, message_rate_hz=7.0).message_rate_hz == 7
 
 
 def test_extra_values_are_budgeted_after_the_flow():

@@ -108,10 +108,15 @@ def test_rate_limited_by_baud():
     link = open_link(LinkConfig(port=None, baud=9600, autopilot="inav", focal_length_px=400.0))
     link.close()
     assert link.message_rate_hz == 32  # 960 B/s * 0.6 / 18 B
-    # the slowest baud the daemon accepts still carries 3 reports/s (a report spans <= 0.45 s)
-    link = open_link(LinkConfig(port=None, baud=1200, autopilot="inav", focal_length_px=400.0))
+    # the slowest standard baud that carries the 7 reports/s INAV needs (it drops the sensor
+    # after 200 ms without one); 1200 baud (120 B/s < 7 x 18 B) is refused, naming it
+    link = open_link(LinkConfig(port=None, baud=2400, autopilot="inav", focal_length_px=400.0))
     link.close()
-    assert link.message_rate_hz == 4   # 72 B/s / 18 B
+    assert link.message_rate_hz == 8   # 144 B/s / 18 B
+    with pytest.raises(ValueError, match=r"baud 1200 is too low: at least 7 MSP2_SENSOR_OPTIC_FLOW reports per "
+                                         r"second \(18 bytes each; .*\) need 126 bytes/s, and 1200 baud carries "
+                                         r"120 bytes/s \(8N1\); use 2400 baud or more on both ends"):
+        open_link(LinkConfig(port=None, baud=1200, autopilot="inav", focal_length_px=400.0))
 
 
 def test_forward_flight_worked_example(peer):

@@ -8,12 +8,18 @@ Timing model
   time, not wall clock) reaches the message period, the protocol encodes it and it is queued
   and written at once — messages go out as soon as the flow is known, at a steady rate
   (a frame's extra values are queued after its flow message).
-* **No report spans more than 0.45 s** (the integrator's ``max_interval_us``; ArduPilot needs
-  a message every < 0.5 s, PX4 drops integration times >= 1 s): the rate is never below
-  :data:`MIN_MESSAGE_RATE_HZ`, a report goes out on the last frame before the next one would
-  take it past that span, and a late frame closes the pending report first. A baud rate
-  that cannot carry even that is refused (:func:`line_problem`), and the extra values get
-  only what the flow leaves of the budget.
+* **At least** :data:`MIN_MESSAGE_RATE_HZ` **(7) reports a second**: ArduPilot's EKF3 uses
+  optical flow only while its newest sample is < 200 ms old, and INAV drops an MSP flow
+  sensor after 200 ms without an update. A baud rate that cannot carry that is refused
+  (:func:`line_problem`), and the extra values get only what the flow leaves of the budget.
+  Reports end on frame boundaries: with frames more than 1/7 s apart each frame is a report
+  (the autopilot sees the camera's own, slower, rate), and at the floor itself a report may
+  wait up to 3/4 of a frame interval past 1/7 s (200 ms apart at 10 fps, 222 ms at 9 fps).
+* **No report spans more than 0.45 s** (the integrator's ``max_interval_us``; ArduPilot marks
+  the sensor unhealthy without a message for 0.5 s, PX4 drops integration times >= 1 s): a
+  report goes out on the last frame before the next one would take it past that span, and a
+  frame that would take it past anyway (a late one) closes the pending report at the previous
+  frame and starts the next interval at itself.
 * ``service(now_host_us)`` does everything that depends on host time: reopening the port,
   reading the autopilot's side, heartbeats, and the blind keep-alive.
 * **Blind camera.** ArduPilot marks the flow sensor unhealthy when the last message is
@@ -33,9 +39,10 @@ Timing model
   from the previous message on; so any message starts the autopilot's next interval.
   Hence (1) when integration (re)starts — the first frame, a frame after a gap or a clock
   reset — the link sends a quality-0 report at once, so the next report's counts and the
-  autopilot's interval start at the same frame; (2) a keep-alive never discards the pending
-  interval, but the report that closes an interval begun before a keep-alive goes out with
-  quality 0 (its counts span more than the autopilot's interval).
+  autopilot's interval start at the same frame (after a late frame, the report it closed
+  is that report, and integration restarts at the late frame); (2) a keep-alive never
+  discards the pending interval, but the report that closes an interval begun before a
+  keep-alive goes out with quality 0 (its counts span more than the autopilot's interval).
 """
 
 from __future__ import annotations
@@ -50,7 +57,8 @@ from .message_log import MessageLog
 from .serial_port import OutgoingMessage, SerialTransport
 
 __all__ = ["FlowSample", "LinkConfig", "FlowLink", "choose_message_rate", "AUTOPILOTS", "PROTOCOLS",
-           "AUTOPILOT_PROTOCOLS", "BLIND_RATE_HZ", "MIN_MESSAGE_RATE_HZ", "resolve_protocol", "line_problem"]
+           "AUTOPILOT_PROTOCOLS", "BLIND_RATE_HZ", "MIN_MESSAGE_RATE_HZ", "MIN_RATE_REASON", "resolve_protocol",
+           "line_problem"]
 
 log = logging.getLogger(__name__)
 
@@ -71,11 +79,16 @@ SLOW_STREAM_WAIT = 1.25
 TIMEOUT_MARGIN_S = 0.05
 #: Fraction of the line's capacity the link may use (the rest absorbs jitter and bursts).
 BUSY_FRACTION = 0.6
-#: Fewest flow reports per second, whatever the baud rate or ``message_rate_hz``: a report
-#: may span at most the integrator's ``max_interval_us`` (0.45 s; ArduPilot marks the sensor
-#: unhealthy without a message every < 0.5 s, PX4 drops integration times >= 1 s), and a
-#: period of 1/3 s leaves room for a report to end on a frame boundary.
-MIN_MESSAGE_RATE_HZ = 3.0
+#: Fewest flow reports per second, whatever the baud rate or ``message_rate_hz``: ArduPilot's
+#: EKF3 starts (and re-enters) flow aiding only while the newest flow sample is < 200 ms old
+#: (``readyToUseOptFlow``), and INAV times an MSP flow sensor out after 200 ms
+#: (``OPFLOW_UPDATE_TIMEOUT_US``); a period of 1/7 s (143 ms) leaves room for frame alignment
+#: and jitter. (PX4's EKF2 has no such limit, but "both" feeds ArduPilot too, and one floor
+#: keeps the baud rule simple.)
+MIN_MESSAGE_RATE_HZ = 7.0
+#: Why :data:`MIN_MESSAGE_RATE_HZ`, for the error messages that enforce it.
+MIN_RATE_REASON = ("ArduPilot's EKF3 uses optical flow only while its newest sample is < 200 ms old, "
+                   "and INAV drops an MSP flow sensor after 200 ms without an update")
 #: Baud rates suggested when the line is too slow (the usual UART settings).
 STANDARD_BAUDS = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
 
@@ -139,8 +152,8 @@ class LinkConfig:
         Flow messages per second; None chooses the highest rate keeping the line ≤ 60 % busy,
         capped at 100 Hz (OPTICAL_FLOW alone), 70 Hz (with OPTICAL_FLOW_RAD, whose reports
         also span at least 1/70 s: PX4's SENS_FLOW_RATE) or 50 Hz (MSP). Never more than one
-        message per frame, never fewer than :data:`MIN_MESSAGE_RATE_HZ` (a report spans at
-        most 0.45 s).
+        message per frame, never fewer than :data:`MIN_MESSAGE_RATE_HZ` (ArduPilot's EKF3 and
+        INAV need a flow sample every < 200 ms).
     heartbeat_rate_hz : float
         MAVLink HEARTBEAT rate, Hz (also while the camera is blind).
     ground_distance_m : float or None
@@ -186,9 +199,8 @@ class LinkConfig:
         if int(self.baud) <= 0:
             raise ValueError(f"baud must be positive, got {self.baud}")
         if self.message_rate_hz is not None and not self.message_rate_hz >= MIN_MESSAGE_RATE_HZ:
-            raise ValueError(f"message_rate_hz must be None or >= {MIN_MESSAGE_RATE_HZ:g} (a report may span "
-                             f"at most 0.45 s: ArduPilot needs a flow message every < 0.5 s), got "
-                             f"{self.message_rate_hz}")
+            raise ValueError(f"message_rate_hz must be None or >= {MIN_MESSAGE_RATE_HZ:g} ({MIN_RATE_REASON}), "
+                             f"got {self.message_rate_hz}")
         if not self.heartbeat_rate_hz > 0:
             raise ValueError(f"heartbeat_rate_hz must be positive, got {self.heartbeat_rate_hz}")
         if not 0 <= int(self.sensor_id) <= 255:
@@ -229,7 +241,7 @@ def choose_message_rate(*, baud: int, bytes_per_message: int, cap_hz: float,
     -------
     float
         Message rate, Hz, at least :data:`MIN_MESSAGE_RATE_HZ` even where the budget gives
-        less (a slower rate would make each report span more than the autopilots accept;
+        less (at a slower rate ArduPilot's EKF3 and INAV stop using the flow;
         :func:`line_problem` says when the line cannot carry even that).
     """
     budget = baud / 10.0 * busy_fraction - reserved_bytes_per_s
@@ -259,9 +271,8 @@ def line_problem(*, baud: int, report: str, bytes_per_report: int, reserved_byte
     fits = [b for b in STANDARD_BAUDS if b / 10.0 * BUSY_FRACTION >= need]
     advice = f"use {fits[0]} baud or more" if fits else "use a faster line"
     return (f"too low: at least {MIN_MESSAGE_RATE_HZ:g} {report} reports per second "
-            f"({bytes_per_report} bytes each; a report may span at most 0.45 s, ArduPilot needs a flow "
-            f"message every < 0.5 s){reserved} need {need:.0f} bytes/s, and {baud} baud carries "
-            f"{baud / 10.0:.0f} bytes/s (8N1); {advice} on both ends")
+            f"({bytes_per_report} bytes each; {MIN_RATE_REASON}){reserved} need {need:.0f} bytes/s, "
+            f"and {baud} baud carries {baud / 10.0:.0f} bytes/s (8N1); {advice} on both ends")
 
 
 class FlowLink:
@@ -355,9 +366,9 @@ class FlowLink:
         cfg = self.config
         problem = self.line_problem(cfg)
         if problem:
-            # Refused, not warned: 3 reports/s that the line cannot carry age out in the
-            # queue, and the autopilot sees a sensor that keeps timing out (the daemon checks
-            # this at start-up and exits 2, naming [link] baud).
+            # Refused, not warned: reports the line cannot carry age out in the queue, and
+            # the autopilot sees a sensor that keeps timing out (the daemon checks this at
+            # start-up and exits 2, naming [link] baud).
             raise ValueError(f"{self.protocol} on {cfg.port}: baud {cfg.baud} is {problem}")
         budget_rate = choose_message_rate(baud=cfg.baud, bytes_per_message=self._bytes_per_report(),
                                           cap_hz=self._default_rate_cap(),
@@ -374,7 +385,8 @@ class FlowLink:
         if rate < 10 and cfg.message_rate_hz is None:  # (a configured rate is a choice, not a shortfall)
             load = (rate * self._bytes_per_report() + self._reserved_bytes_per_s()) / (cfg.baud / 10.0)
             over = (f" ({100 * load:.0f} % of the line, over the {100 * BUSY_FRACTION:.0f} % budget: the "
-                    f"fewest that keep a report within 0.45 s)" if load > BUSY_FRACTION else "")
+                    f"fewest that keep ArduPilot's EKF3 and INAV using the flow, which need a sample "
+                    f"every < 200 ms)" if load > BUSY_FRACTION else "")
             log.warning("%s on %s: only %.0f flow messages/s fit in %d baud%s; raise the baud rate",
                         self.protocol, cfg.port, rate, cfg.baud, over)
         log.info("%s on %s: up to %.0f flow messages/s (%d bytes each) at %d baud", self.protocol, cfg.port,
@@ -459,15 +471,26 @@ class FlowLink:
         self._note_submit(now)
         integ = self.integrator
         dt = int(sample.timestamp_us) - (integ.last_timestamp_us or 0)
-        if (integ.elapsed_us > 0 and 0 < dt <= integ.gap_threshold_us
-                and integ.elapsed_us + dt > integ.max_interval_us):
-            # A late frame (jitter past the nominal interval the schedule below plans with)
-            # would stretch the pending report beyond what the autopilots accept: it goes
-            # out now, ending at the previous frame, and this frame starts the next one.
+        # A frame that would take the pending report past max_interval_us (jitter past the
+        # nominal interval the schedule below plans with) closes it first, at the previous
+        # frame. Judged here, not against gap_threshold_us: add_frame() learns dt before its
+        # gap test, and a late frame can lift the threshold enough to pass as an ordinary one.
+        late = integ.elapsed_us > 0 and dt > 0 and integ.elapsed_us + dt > integ.max_interval_us
+        if late:
             self._emit_pending(capture_host_us=self._last_capture_host_us, now=now)
-        started = not integ.add_frame(timestamp_us=sample.timestamp_us, flow_x_px=sample.flow_x,
-                                      flow_y_px=sample.flow_y, quality=sample.quality)
-        if started:
+        accepted = integ.add_frame(timestamp_us=sample.timestamp_us, flow_x_px=sample.flow_x,
+                                   flow_y_px=sample.flow_y, quality=sample.quality)
+        if late:
+            # The report just sent starts the autopilot's next interval now, at this frame:
+            # the frame's own flow began before it (sent too, INAV would divide it by ~0 s;
+            # PX4 drops a sample older than the one before), so integration restarts here.
+            # That report also stands for the restart marker below (no second report at
+            # once, gap or not); only the carried remainders are left to forget.
+            if accepted:
+                integ.restart(int(sample.timestamp_us))
+            self.stats["integration_restarts"] = integ.restart_count
+            self._reset_carry()
+        elif not accepted:
             # The first frame or a restart (the only time restart_count changes). The
             # autopilot's next interval must begin at this frame as well; the quality-0
             # marker also forgets the protocol's carried remainders (_emit).
@@ -482,7 +505,7 @@ class FlowLink:
             nominal = integ.nominal_interval_us or 0.0
             tolerance = 0.25 * nominal
             # ... and no later than the frame after which the next one would take the report
-            # past max_interval_us (slow frames at a low rate: 4 fps at 3 Hz would span 0.5 s).
+            # past max_interval_us (a backstop: at MIN_MESSAGE_RATE_HZ the period ends first).
             due = max(min(self.period_us - tolerance, integ.max_interval_us - nominal),
                       self.min_report_span_us)
             if integ.elapsed_us > 0 and integ.elapsed_us >= due:

@@ -162,7 +162,7 @@ class MavlinkLink(FlowLink):
         The flow keeps the configured ``message_rate_hz``, or without one the smaller of
         :data:`EXTRAS_KEEP_FLOW_HZ` and what the budget gives the flow alone; the extras get
         what is left of the 60 % budget. (Reserved first, at 9600 baud their 600 bytes/s
-        would leave the flow the 3 Hz minimum.)
+        would leave the flow nothing but the 7 Hz minimum, over the budget.)
         """
         cfg = self.config
         if not cfg.extra_values:
