@@ -198,7 +198,8 @@ def profile_stages(width: int, height: int, *, frames: int = 200, backend_kwargs
     timeline spends between the first command's start and the last one's end outside
     the commands (scheduling, thread wake-ups), ``"decode"`` the host's time to unpack
     the int8 codes (paid only when the dense field is read), ``"summary"`` the host's time
-    for :func:`emdflow.summarize` right after each frame's update.
+    for :func:`emdflow.summarize` right after each frame's update (absent for an engine made
+    with ``summary_evidence=False``: ``emdflow bench --stages --dense-only``).
     """
     import pyopencl as cl
 
@@ -249,7 +250,8 @@ def profile_stages(width: int, height: int, *, frames: int = 200, backend_kwargs
     out["gaps"] = statistics.median(gaps)
     out["wall"] = statistics.median(walls)
     out["decode"] = statistics.median(decodes)
-    out["summary"] = _summary_time(width, height, clip, backend_kwargs)
+    if engine.params.summary_evidence:  # (a dense-only engine has nothing to summarise)
+        out["summary"] = _summary_time(width, height, clip, backend_kwargs)
     return out
 
 
@@ -358,6 +360,10 @@ def _check_arguments(parser: argparse.ArgumentParser, args) -> dict:
         given.append(f"--evidence-row-step {args.evidence_row_step}")
     if not args.diagonal_evidence:
         kwargs["diagonal_evidence"] = False
+    if args.dense_only:
+        if not args.stages:  # (the timing table measures the dense-only engine in its own column)
+            parser.error("--dense-only: only with --stages (the table has a dense-only column)")
+        kwargs["summary_evidence"] = False
     try:  # the engine's own checks, before the flight is rendered
         EngineParams(**kwargs)
     except (TypeError, ValueError) as exc:
@@ -398,6 +404,9 @@ def main(argv=None) -> int:
                              "summary (EngineParams.diagonal_evidence)")
     parser.add_argument("--stages", action="store_true",
                         help="instead: device time per command of a frame (OpenCL profiling events)")
+    parser.add_argument("--dense-only", action="store_true",
+                        help="with --stages: the engine without the summary's evidence "
+                             "(summary_evidence=False: the dense field only; no summary time)")
     parser.add_argument("--drift", type=float, default=0.0,
                         help="with --stages: an exposure drift of this relative size across the "
                              "40-frame clip (the brightness compensation's slower path)")
@@ -420,6 +429,7 @@ def main(argv=None) -> int:
           + (f", delays {kwargs['delays']}" if args.delays is not None else "")
           + (f", evidence every {args.evidence_row_step} row(s)" if args.evidence_row_step else "")
           + ("" if args.diagonal_evidence else ", without diagonal evidence")
+          + (", dense field only" if args.dense_only else "")
           + f"; flight over {args.texture}",
           flush=True)
     if args.stages:

@@ -316,6 +316,14 @@ def test_bench_stages_times_every_command_of_a_frame(capsys):
     assert bench.main(["--stages", "--sizes", "64x48"]) == 0
     line = capsys.readouterr().out.strip().splitlines()[-1]
     assert line.startswith("64x48") and all(name in line for name in (*OpenCLEngine.STAGES, "summary"))
+    # the dense field only: the same commands (the detector kernel without the binning),
+    # nothing to summarise
+    assert bench.main(["--stages", "--dense-only", "--sizes", "64x48"]) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    assert "dense field only" in out[0]
+    assert all(name in out[-1] for name in OpenCLEngine.STAGES) and "summary" not in out[-1]
+    with pytest.raises(SystemExit):  # the timing table has its own dense-only column
+        bench.main(["--dense-only", "--sizes", "64x48"])
 
 
 def test_bench_names_the_device_its_engine_runs_on(monkeypatch, capsys):
