@@ -163,16 +163,18 @@ def test_a_port_that_can_never_be_a_serial_port_is_a_configuration_error(tmp_pat
     assert "Traceback" not in result.stderr
 
 
-@pytest.mark.parametrize("autopilot, baud, advice", [("ardupilot", 2400, 9600), ("px4", 2400, 9600),
-                                                     ("both", 4800, 19200), ("inav", 1200, 2400)])
+@pytest.mark.parametrize("autopilot, baud, advice", [("ardupilot", 4800, 9600), ("px4", 4800, 19200),
+                                                     ("both", 9600, 38400), ("inav", 1200, 4800)])
 def test_a_baud_rate_too_low_for_the_flow_messages_is_a_configuration_error(autopilot, baud, advice):
-    """Not even 7 reports per second (ArduPilot's EKF3 and INAV stop using flow older than
-    200 ms) fit: refused at start (exit 2) with the baud rate that would do, not run into
-    timeouts. (These bauds carried the old floor of 3/s.)"""
+    """Not even the up to 11 reports per second the link may send fit (at least 7: ArduPilot's
+    EKF3 and INAV stop using flow older than 200 ms; every frame of a camera near 11 fps, to
+    keep them <= 180 ms apart): refused at start (exit 2) with the baud rate that would do,
+    not run into timeouts. (The 4800 and 9600 baud here carried the 7/s floor alone.)"""
     result = run_cli(["--source", "synthetic:", "--serial", "/dev/null", "--baud", baud, "--autopilot",
                       autopilot, "--frames", 3], timeout=60)
     assert result.returncode == 2, result.stderr[-2000:]
-    assert f"configuration: [link] baud = {baud} (--baud) is too low: at least 7 " in result.stderr
+    assert (f"configuration: [link] baud = {baud} (--baud) is too low: up to 11 " in result.stderr
+            and "(at least 7, and every frame of a camera near 11 fps; " in result.stderr), result.stderr[-2000:]
     assert "< 200 ms old" in result.stderr
     assert f"use {advice} baud or more on both ends" in result.stderr and "Traceback" not in result.stderr
 

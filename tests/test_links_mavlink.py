@@ -117,18 +117,29 @@ def make_link_no_port(**kw):
 
 
 def test_a_slow_line_gets_the_fewest_reports_the_autopilots_accept(caplog):
-    """Below the 60 % budget's 7 reports/s the link still sends 7/s (ArduPilot's EKF3 and
-    INAV stop using flow older than 200 ms; 3/s was the floor) and says so; a line too slow
-    even for that is refused, naming the baud rate that would do (test_links_timing flies
-    these rates)."""
-    # 4800 baud: 288 B/s budget - 21 B/s heartbeat = 5 OPTICAL_FLOW (46 B) or 4 OPTICAL_FLOW_RAD (56 B)
-    assert make_link_no_port(autopilot="ardupilot", baud=4800).message_rate_hz == 7
-    assert "71 % of the line, over the 60 % budget" in caplog.text        # (7 x 46 + 21) / 480
-    assert make_link_no_port(autopilot="px4", baud=4800).message_rate_hz == 7
-    assert make_link_no_port(autopilot="both", baud=9600).message_rate_hz == 7   # 555 / 102 B: 5
-    for autopilot, baud, need, advice in (("ardupilot", 2400, 343, 9600), ("px4", 2400, 413, 9600),
-                                          ("both", 4800, 735, 19200)):
-        with pytest.raises(ValueError, match=f"baud {baud} is too low: at least 7 .* reports per second") as info:
+    """The line must carry up to 11 reports/s (at least 7: ArduPilot's EKF3 and INAV stop
+    using flow older than 200 ms; with a camera near 11 fps every frame is one, to keep them
+    <= 180 ms apart) plus the heartbeats, or the link is refused, naming the baud rate whose
+    60 % budget would hold them (the 7/s floor alone let 4800 baud through; test_links_timing
+    flies these rates)."""
+    # The slowest standard bauds still accepted, and the rates their 60 % budgets give:
+    # (576 - 21 HEARTBEAT B/s) / 46 B OPTICAL_FLOW, / 56 B OPTICAL_FLOW_RAD; (1152 - 21) / 102 B
+    assert make_link_no_port(autopilot="ardupilot", baud=9600).message_rate_hz == 12
+    assert make_link_no_port(autopilot="px4", baud=9600).message_rate_hz == 9
+    assert "only 9 flow messages/s fit in 9600 baud" in caplog.text
+    assert "over the 60 % budget" not in caplog.text
+    assert make_link_no_port(autopilot="both", baud=19200).message_rate_hz == 11
+    # Below 7 a second the budget still gives way to the floor, and says so (only a
+    # non-standard baud between need and budget gets there now): (336 - 21) / 46 = 6.8
+    caplog.clear()
+    assert make_link_no_port(autopilot="ardupilot", baud=5600).message_rate_hz == 7
+    assert "61 % of the line, over the 60 % budget" in caplog.text       # (7 x 46 + 21) / 560
+    # need = 1e6 / 90 ms x bytes + 21 B/s of HEARTBEAT
+    for autopilot, baud, need, advice in (("ardupilot", 2400, 532, 9600), ("ardupilot", 4800, 532, 9600),
+                                          ("px4", 4800, 643, 19200), ("both", 4800, 1154, 38400),
+                                          ("both", 9600, 1154, 38400)):
+        with pytest.raises(ValueError, match=rf"baud {baud} is too low: up to 11 .* reports per second \(at "
+                                             r"least 7, and every frame of a camera near 11 fps; ") as info:
             open_link(LinkConfig(port=None, baud=baud, autopilot=autopilot, focal_length_px=F))
         text = str(info.value)
         assert f"need {need} bytes/s, and {baud} baud carries {baud // 10} bytes/s" in text

@@ -108,14 +108,20 @@ def test_rate_limited_by_baud():
     link = open_link(LinkConfig(port=None, baud=9600, autopilot="inav", focal_length_px=400.0))
     link.close()
     assert link.message_rate_hz == 32  # 960 B/s * 0.6 / 18 B
-    # the slowest standard baud that carries the 7 reports/s INAV needs (it drops the sensor
-    # after 200 ms without one); 1200 baud (120 B/s < 7 x 18 B) is refused, naming it
+    link = open_link(LinkConfig(port=None, baud=4800, autopilot="inav", focal_length_px=400.0))
+    link.close()
+    assert link.message_rate_hz == 16  # 288 B/s / 18 B
+    # the slowest standard baud that carries the up to 11 reports/s INAV may get (at least 7:
+    # it drops the sensor after 200 ms without one; every frame of a camera near 11 fps, to
+    # keep them <= 180 ms apart): 11.1 x 18 B = 200 B/s of its 240; its budget gives 8/s
     link = open_link(LinkConfig(port=None, baud=2400, autopilot="inav", focal_length_px=400.0))
     link.close()
     assert link.message_rate_hz == 8   # 144 B/s / 18 B
-    with pytest.raises(ValueError, match=r"baud 1200 is too low: at least 7 MSP2_SENSOR_OPTIC_FLOW reports per "
-                                         r"second \(18 bytes each; .*\) need 126 bytes/s, and 1200 baud carries "
-                                         r"120 bytes/s \(8N1\); use 2400 baud or more on both ends"):
+    # 1200 baud (120 B/s) is refused, naming the baud whose 60 % budget holds 200 B/s
+    with pytest.raises(ValueError, match=r"baud 1200 is too low: up to 11 MSP2_SENSOR_OPTIC_FLOW reports per "
+                                         r"second \(at least 7, and every frame of a camera near 11 fps; 18 bytes "
+                                         r"each; .*\) need 200 bytes/s, and 1200 baud carries 120 bytes/s \(8N1\); "
+                                         r"use 4800 baud or more on both ends"):
         open_link(LinkConfig(port=None, baud=1200, autopilot="inav", focal_length_px=400.0))
 
 

@@ -26,7 +26,6 @@ from daemon_util import parse_msp_v2  # noqa: E402
 from ptyutil import PtyPeer, host_us  # noqa: E402
 
 from firmware_py.links import FlowSample, LinkConfig, open_link  # noqa: E402
-from firmware_py.links.base import MIN_MESSAGE_RATE_HZ  # noqa: E402
 
 F = 100.0            # focal length, px
 STEP_US = 10_000     # the daemon services the link every 10 ms
@@ -123,9 +122,11 @@ def make_link(peer, autopilot, **kw):
     return open_link(LinkConfig(port=peer.path, baud=921600, autopilot=autopilot, focal_length_px=F, **kw))
 
 
-def drive(link, fc, frames, *, start_us, end_us):
+def drive(link, fc, frames, *, start_us, end_us, stall=None):
     """Run the host clock from ``start_us`` to ``end_us`` in 10 ms steps; each frame
-    ``(submit_host_us, sample)`` is submitted at its host time (to the µs)."""
+    ``(submit_host_us, sample)`` is submitted at its host time (to the µs). ``stall``:
+    ``(from_us, to_us)`` host times strictly between which ``service()`` is not called
+    (the frame loop is stuck in the engine)."""
     pending = sorted(frames, key=lambda item: item[0])
     t = start_us
     while t <= end_us:
@@ -133,7 +134,8 @@ def drive(link, fc, frames, *, start_us, end_us):
             at, sample = pending.pop(0)
             link.submit(sample, now_host_us=at)
             fc.poll(at)
-        link.service(t)
+        if stall is None or not stall[0] < t < stall[1]:
+            link.service(t)
         fc.poll(t)
         t += STEP_US
 
@@ -379,98 +381,260 @@ def test_px4_rate_above_sens_flow_rate_is_warned(caplog):
 
 MAX_SPAN_US = 450_000   # the integrator's max_interval_us: ArduPilot needs a message every < 0.5 s
 #: ArduPilot's EKF3 uses optical flow only while its newest sample is < 200 ms old, and INAV
-#: drops an MSP flow sensor after 200 ms without one.
-FRESH_US = 200_000
+#: drops an MSP flow sensor after 200 ms without one: reports go out at most 180 ms apart
+#: (room for jitter) wherever the frames themselves are no further apart.
+FRESH_US = 180_000
+FLOW_MESSAGES = ("OPTICAL_FLOW", "OPTICAL_FLOW_RAD", "MSP2_SENSOR_OPTIC_FLOW")
 
 
-@pytest.mark.parametrize("autopilot, settings", [
+def logged_spans(log_path) -> list[int]:
+    """Every flow report's span (µs) in the link's own message log (the wire carries it only
+    for PX4), in the order written."""
+    logged = [json.loads(line) for line in log_path.read_text().splitlines()]
+    return [r["integration_time_us"] for r in logged if r["message"] in FLOW_MESSAGES]
+
+
+def inav_quantum(span_us: float) -> float:
+    """One MSP motion count as a rate over ``span_us``, rad/s (INAV's rates are quantised)."""
+    return math.radians(1 / OPFLOW_SCALE) * 1e6 / span_us
+
+
+LOW_RATES = {
     # the extras' 600 bytes/s once left the flow 1 report/s: it keeps 10/s
-    ("ardupilot", {"baud": 9600, "extra_values": True}),
-    # the 60 % budget alone gives 4 OPTICAL_FLOW_RAD or 5 OPTICAL_FLOW a second (the 3/s floor
-    # let them be 250 and 200 ms apart): the 7/s floor
-    ("px4", {"baud": 4800}),
-    ("ardupilot", {"baud": 4800}),
-], ids=["9600-extras", "px4-4800", "ardupilot-4800"])
-def test_a_low_message_rate_reports_often_enough_within_the_span_cap(tmp_path, autopilot, settings):
-    """A 100 fps camera on a slow line: a report every < 200 ms, each spanning <= 0.45 s."""
+    "9600-extras": ("ardupilot", {"baud": 9600, "extra_values": True}),
+    # the slowest standard baud that carries OPTICAL_FLOW_RAD's up to 11 reports/s: its 60 %
+    # budget gives 9/s (4800 baud, where the budget gave 4 and the 7/s floor applied, is refused)
+    "px4-9600": ("px4", {"baud": 9600}),
+    # the 7/s floor itself on that line
+    "px4-7hz": ("px4", {"baud": 9600, "message_rate_hz": 7.0}),
+    "ardupilot-7hz": ("ardupilot", {"baud": 9600, "message_rate_hz": 7.0}),
+}
+
+
+@pytest.mark.parametrize("interval_us", [10_000, 111_111], ids=["100fps", "9fps"])
+@pytest.mark.parametrize("case", list(LOW_RATES))
+def test_a_low_message_rate_reports_often_enough_within_the_span_cap(tmp_path, case, interval_us):
+    """A 100 fps and a 9 fps camera on a slow line: a report every <= 180 ms, each spanning
+    <= 0.45 s, all with the true rate. (At 7/s a 9 fps camera's reports used to wait for the
+    frame after 1/7 s: 222 ms apart.)"""
+    autopilot, settings = LOW_RATES[case]
     peer = PtyPeer(tmp_path / "ttyFC")
-    options = {"baud": 921600, **settings}
-    link = open_link(LinkConfig(port=peer.path, autopilot=autopilot, focal_length_px=F, **options))
+    link = open_link(LinkConfig(port=peer.path, autopilot=autopilot, focal_length_px=F, **settings))
     fc = FlightController(peer, autopilot)
     start = host_us()
-    frames = stream(start, [10_000] * 300, engine_us=3_000, flow_px_per_s=FLOW)
+    frames = stream(start, [interval_us] * int(3e6 / interval_us), engine_us=3_000, flow_px_per_s=FLOW)
     try:
         drive(link, fc, frames, start_us=start, end_us=frames[-1][0] + STEP_US)
     finally:
         link.close()
         peer.close()
-    assert link.message_rate_hz >= MIN_MESSAGE_RATE_HZ
+    assert link.message_rate_hz == settings.get("message_rate_hz", {"ardupilot": 10, "px4": 9}[autopilot])
     first = next(i for i, m in enumerate(fc.messages) if m["quality"] > 0)
     reports = fc.messages[first:]    # after the quality-0 start marker (and a keep-alive before it)
-    assert len(reports) >= 5
+    assert fc.largest_gap_us(reports[0]["at"]) <= FRESH_US
+    # one a frame, or the configured rate if that is less
+    assert len(reports) >= 3e6 / max(interval_us, 1e6 / link.message_rate_hz) - 3
     if autopilot == "px4":
         spans = [m["integration_time_us"] for m in reports]
     else:                            # contiguous reports: each spans from the previous one's end
         spans = [b["time_usec"] - a["time_usec"] for a, b in zip(fc.messages[first - 1:], reports)]
     assert max(spans) <= MAX_SPAN_US, spans
     assert all(m["used"] for m in reports)                 # real flow, not keep-alives
-    assert fc.largest_gap_us(reports[0]["at"]) < FRESH_US
     for m in reports:
         assert m["rate"][1] == pytest.approx(TRUE_RATE[1], rel=0.01)
 
 
-# Jittery frames at the 7/s floor, then a late one (370 ms): its own interval joins the
-# lower-median history and lifts the gap threshold from 340 to 400 ms. Judged against the
-# threshold before that, it passed as an ordinary frame: the pending 90 ms went out with it
-# as a 460 ms report (the reviewer saw 530 and 610 ms at the old 3/s floor). At 420 ms it
-# is a gap (threshold 400 ms) and restarts integration.
-JITTER_US = [100_000, 100_000, 100_000, 170_000, 200_000, 200_000, 200_000, 200_000, 90_000]
-AFTER_US = [100_000, 150_000] * 4
-FLOW_MESSAGES = ("OPTICAL_FLOW", "OPTICAL_FLOW_RAD", "MSP2_SENSOR_OPTIC_FLOW")
+#: Frames per report for steady frames at these fps, at the fewest reports a second the link
+#: sends: 7 (the floor: message_rate_hz = 7) and the 60 % budgets of the slowest standard bauds
+#: accepted, INAV at 2400 (8/s) and PX4 at 9600 (9/s). A report goes out on the frame at
+#: which 1/rate (less a quarter frame) has passed, or earlier, on the last frame before the
+#: next one would take it past 180 ms: with frames 90-180 ms apart, each frame is one.
+FRAMES_PER_REPORT = {     # fps: {reports/s: frames}
+    7.5: {7: 1, 8: 1, 9: 1},      # 133 ms
+    8.8: {7: 1, 8: 1, 9: 1},      # 114 ms (2 frames at 7/s: 227 ms)
+    9.0: {7: 1, 8: 1, 9: 1},      # 111 ms (2 at 7/s: 222 ms)
+    10.0: {7: 1, 8: 1, 9: 1},     # 100 ms (2 at 7/s: 200 ms)
+    11.0: {7: 1, 8: 1, 9: 1},     # 91 ms, 11 reports/s (2 at 7 and 8/s: 182 ms)
+    12.0: {7: 2, 8: 2, 9: 2},     # 167 ms
+    14.0: {7: 2, 8: 2, 9: 2},     # 143 ms
+    100.0: {7: 15, 8: 13, 9: 11},  # 150, 130, 110 ms: the backstop adds no reports
+}
+FLOOR_LINKS = {
+    "ardupilot-7hz": ("ardupilot", {"baud": 115200, "message_rate_hz": 7.0}, 7),
+    "px4-7hz": ("px4", {"baud": 115200, "message_rate_hz": 7.0}, 7),
+    "inav-7hz": ("inav", {"baud": 115200, "message_rate_hz": 7.0}, 7),
+    "inav-2400": ("inav", {"baud": 2400}, 8),
+    "px4-9600": ("px4", {"baud": 9600}, 9),
+}
+
+
+@pytest.mark.parametrize("fps", list(FRAMES_PER_REPORT))
+@pytest.mark.parametrize("case", list(FLOOR_LINKS))
+def test_reports_at_the_floor_are_at_most_180ms_apart(tmp_path, case, fps):
+    """At the fewest reports a second (the 7/s floor, the budget of a slow line), steady frames
+    at 7.5-14 fps are reported at most 180 ms apart, as the autopilot receives them and as
+    the message log records their spans: at 7/s, frames 90-114 ms apart used to wait for the
+    frame after 1/7 s and go out 200-227 ms apart (ArduPilot's EKF3 and INAV want < 200 ms).
+    A fast camera gets no more reports than the rate asks for (100 fps at 7/s: every 150 ms)."""
+    autopilot, settings, rate = FLOOR_LINKS[case]
+    peer = PtyPeer(tmp_path / "ttyFC")
+    log_path = tmp_path / "messages.jsonl"
+    link = open_link(LinkConfig(port=peer.path, autopilot=autopilot, focal_length_px=F,
+                                message_log=str(log_path), **settings))
+    fc = FlightController(peer, autopilot)
+    interval_us = round(1e6 / fps)
+    start = host_us()
+    frames = stream(start, [interval_us] * int(3e6 / interval_us), engine_us=3_000, flow_px_per_s=FLOW)
+    try:
+        drive(link, fc, frames, start_us=frames[0][0], end_us=frames[-1][0] + STEP_US)
+    finally:
+        link.close()
+        peer.close()
+    assert link.message_rate_hz == rate
+    per_report_us = FRAMES_PER_REPORT[fps][rate] * interval_us
+    assert fc.messages[0]["quality"] == 0 and fc.messages[0]["at"] == frames[0][0]   # the start marker
+    arrivals = [m["at"] for m in fc.messages]
+    gaps = [b - a for a, b in zip(arrivals, arrivals[1:])]
+    assert max(gaps) <= FRESH_US, gaps
+    assert set(gaps) == {per_report_us}, gaps
+    reports = fc.messages[1:]
+    assert len(reports) == (len(frames) - 1) // FRAMES_PER_REPORT[fps][rate]
+    assert all(m["used"] for m in reports), [m["quality"] for m in reports]     # no keep-alive either
+    spans = logged_spans(log_path)
+    assert len(spans) == len(fc.messages) and set(spans[1:]) == {per_report_us}, spans
+    if autopilot == "px4":
+        assert [m["integration_time_us"] for m in reports] == spans[1:]
+    quantum = inav_quantum(per_report_us) if autopilot == "inav" else 1e-6
+    for m in reports:
+        assert m["rate"][1] == pytest.approx(TRUE_RATE[1], rel=0.01, abs=quantum)
+
+
+#: At the 7/s floor, jittery frames 90-140 ms apart (7-11 fps) are each a report, so nothing
+#: is left pending for a late frame to close (the floor's period alone paired them up,
+#: 220-240 ms apart) ...
+JITTER_US = [100_000, 120_000, 90_000, 140_000, 110_000, 130_000, 95_000, 135_000, 105_000]
+#: ... then a 30 fps camera: a report every 5 frames (167 ms); the late frame comes 3 frames
+#: (100 ms) into the next one.
+FAST_US = 33_333
+FAST_BEFORE = 16
+PENDING_FRAMES = 3
+AFTER_US = [FAST_US] * 30
 
 
 @pytest.mark.parametrize("autopilot", ["px4", "ardupilot", "inav"])
-@pytest.mark.parametrize("late_us", [370_000, 420_000], ids=["late", "late-gap"])
+@pytest.mark.parametrize("late_us", [370_000, 420_000], ids=["late-370ms", "late-420ms"])
 def test_a_late_frame_closes_the_pending_report_within_the_span_cap(tmp_path, autopilot, late_us):
     """No report spans more than 0.45 s, however the frames jitter: a frame that would take
-    the pending report past it sends that report at once, ending at the frame before, and
-    integration restarts at the late frame, gap or not. Exactly one report goes out then:
+    the pending report past it sends that report at once, ending at the frame before, with
+    quality 0, and integration restarts at the late frame. Exactly one report goes out then:
     it stands for the restart marker (a marker as well would be a second report of 0 s), and
     the late frame's own flow, which began before it, is not sent (INAV would divide it by
-    the ~0 s since that report)."""
+    the ~0 s since that report). The camera stalls here, the daemon goes on: keep-alives go
+    out during the wait (test_a_late_frame_after_an_engine_stall_... has none). At 30 fps
+    either wait is past the gap threshold (5 frames) as well."""
     peer = PtyPeer(tmp_path / "ttyFC")
     log_path = tmp_path / "messages.jsonl"
     link = open_link(LinkConfig(port=peer.path, baud=921600, autopilot=autopilot, focal_length_px=F,
                                 message_rate_hz=7.0, message_log=str(log_path)))
     fc = FlightController(peer, autopilot)
     start = host_us()
-    frames = stream(start, JITTER_US + [late_us] + AFTER_US, engine_us=3_000, flow_px_per_s=FLOW)
+    intervals = JITTER_US + [FAST_US] * FAST_BEFORE + [late_us] + AFTER_US
+    frames = stream(start, intervals, engine_us=3_000, flow_px_per_s=FLOW)
     try:
-        drive(link, fc, frames, start_us=start, end_us=frames[-1][0] + STEP_US)
+        drive(link, fc, frames, start_us=frames[0][0], end_us=frames[-1][0] + STEP_US)
     finally:
         link.close()
         peer.close()
-    # The link's own record of every report's span (the wire carries it only for PX4).
-    logged = [json.loads(line) for line in log_path.read_text().splitlines()]
-    spans = [r["integration_time_us"] for r in logged if r["message"] in FLOW_MESSAGES]
+    spans = logged_spans(log_path)
     assert len(spans) == len(fc.messages) and max(spans) <= MAX_SPAN_US, spans
     if autopilot == "px4":
         assert [m["integration_time_us"] for m in fc.messages] == spans
-    late_submit = frames[len(JITTER_US) + 1][0]
+    # The jittery frames: one report each, as fresh as the frames themselves.
+    jitter_end = frames[len(JITTER_US)][0]
+    jittery = [m["at"] for m in fc.messages if m["at"] <= jitter_end]
+    assert jittery == [at for at, _ in frames[:len(JITTER_US) + 1]]
+    late_index = len(JITTER_US) + FAST_BEFORE + 1
+    late_submit = frames[late_index][0]
+    # Up to the stall, 30 fps as well: at most 180 ms apart.
+    before = [m["at"] for m in fc.messages if m["at"] <= frames[late_index - 1][0]]
+    assert max(b - a for a, b in zip(before, before[1:])) <= FRESH_US
     at_late = [i for i, m in enumerate(fc.messages) if m["at"] == late_submit]
     assert len(at_late) == 1, [fc.messages[i] for i in at_late]
-    assert spans[at_late[0]] == JITTER_US[-1]      # the pending 90 ms, sent (not the gap's discard)
-    # ... with quality 0: a keep-alive went out during the wait, after that interval began
-    assert fc.messages[at_late[0]]["quality"] == 0 and link.stats["blind_reports"] >= 1
+    # the pending 100 ms (not the gap's discard), with quality 0
+    assert spans[at_late[0]] == PENDING_FRAMES * FAST_US
+    assert sum(intervals[late_index - 1 - PENDING_FRAMES:late_index - 1]) == spans[at_late[0]]
+    assert fc.messages[at_late[0]]["quality"] == 0 and not fc.messages[at_late[0]]["used"]
+    keepalives = [m for m in fc.messages if frames[late_index - 1][0] < m["at"] < late_submit]
+    assert keepalives and all(m["quality"] == 0 for m in keepalives)
     arrivals = [m["at"] for m in fc.messages]
     assert len(set(arrivals)) == len(arrivals), "two reports at once"
-    assert link.stats["integration_restarts"] == (1 if late_us > 400_000 else 0)
-    # The frames after the late one report their true flow from the first on.
+    assert link.stats["integration_restarts"] == 1
+    # The frames after the late one report their true flow from the first on (5 frames each).
     after = [m for m in fc.messages if m["at"] > late_submit]
-    assert len(after) >= len(AFTER_US) // 2 and all(m["used"] for m in after)
-    quantum = math.radians(1 / OPFLOW_SCALE) * 1e6 / 100_000 if autopilot == "inav" else 0.0
+    assert len(after) == len(AFTER_US) // 5 and all(m["used"] for m in after)
+    if autopilot == "px4":
+        assert {m["integration_time_us"] for m in after} == {5 * FAST_US}
+    quantum = inav_quantum(5 * FAST_US) if autopilot == "inav" else 1e-6
     for m in fc.used():
         assert m["rate"][1] == pytest.approx(TRUE_RATE[1], rel=0.01, abs=quantum)
+
+
+@pytest.mark.parametrize("autopilot", ["px4", "ardupilot", "inav"])
+def test_a_late_frame_after_an_engine_stall_closes_the_pending_report_with_quality_0(tmp_path, autopilot):
+    """The engine stalls: 400 ms pass with neither a submit() nor a service() call (no
+    keep-alive can go out), and the next frame is the first captured after the stall. It
+    closes the pending report (2 frames, 67 ms) with quality 0: the autopilot's interval for
+    it runs from the previous message, 467 ms before — INAV would divide its counts by that
+    (a seventh of the true rate), PX4 match them with 467 ms of its gyro. The reports after it
+    are good from the first on, their counts starting at the late frame."""
+    flow = (0.0, 100.0)     # 1 rad/s: 1 count is < 1 % of an INAV rate over 167 ms
+    peer = PtyPeer(tmp_path / "ttyFC")
+    log_path = tmp_path / "messages.jsonl"
+    link = open_link(LinkConfig(port=peer.path, baud=921600, autopilot=autopilot, focal_length_px=F,
+                                message_rate_hz=7.0, message_log=str(log_path)))
+    fc = FlightController(peer, autopilot)
+    start = host_us()
+    stall_us, stall_after = 400_000, 22      # frames 1-20: 4 reports; then 2 frames pending
+    intervals = [FAST_US] * stall_after + [stall_us] + [FAST_US] * 30
+    frames = stream(start, intervals, engine_us=3_000, flow_px_per_s=flow)
+    late_submit = frames[stall_after + 1][0]
+    try:
+        drive(link, fc, frames, start_us=frames[0][0], end_us=frames[-1][0] + STEP_US,
+              stall=(frames[stall_after][0], late_submit))
+    finally:
+        link.close()
+        peer.close()
+    assert link.stats["blind_reports"] == 0     # nothing went out during the stall
+    spans = logged_spans(log_path)
+    assert len(spans) == len(fc.messages)
+    at_late = [i for i, m in enumerate(fc.messages) if m["at"] == late_submit]
+    assert len(at_late) == 1
+    closed = fc.messages[at_late[0]]
+    previous = fc.messages[at_late[0] - 1]
+    assert spans[at_late[0]] == 2 * FAST_US                          # the pending frames' counts ...
+    assert late_submit - previous["at"] == 2 * FAST_US + stall_us    # ... the autopilot's interval
+    assert closed["quality"] == 0 and not closed["used"]
+    if autopilot == "inav":
+        assert closed["rate"][1] == pytest.approx(1.0 * 2 * FAST_US / (2 * FAST_US + stall_us), abs=0.01)
+    if autopilot == "px4":
+        assert closed["integration_time_us"] == 2 * FAST_US
+        published = fc.px4_published()
+        assert next(m for m in published if m["at"] == late_submit)["quality"] == 0
+        fused = [m for m in published if m["used"]]
+        assert fused and all(m["rate"][1] == pytest.approx(1.0, rel=1e-4) for m in fused)
+    arrivals = [m["at"] for m in fc.messages]
+    assert len(set(arrivals)) == len(arrivals), "two reports at once"
+    assert link.stats["integration_restarts"] == 1
+    after = [m for m in fc.messages if m["at"] > late_submit]
+    assert len(after) == 30 // 5 and all(m["used"] for m in after)
+    assert after[0]["at"] - late_submit == 5 * FAST_US     # counted from the late frame on
+    if autopilot == "px4":
+        assert {m["integration_time_us"] for m in after} == {5 * FAST_US}
+    quantum = inav_quantum(5 * FAST_US) if autopilot == "inav" else 1e-6
+    used = fc.used()
+    assert len(used) == len(fc.messages) - 2       # all but the start marker and the closed report
+    for m in used:
+        assert m["rate"][1] == pytest.approx(1.0, rel=1e-4, abs=quantum)
 
 
 EXTRAS = (("expansion", 0.1), ("ttc_s", -1.0), ("balanceLR", 0.0), ("balanceTB", 0.0))

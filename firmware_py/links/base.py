@@ -57,8 +57,8 @@ from .message_log import MessageLog
 from .serial_port import OutgoingMessage, SerialTransport
 
 __all__ = ["FlowSample", "LinkConfig", "FlowLink", "choose_message_rate", "AUTOPILOTS", "PROTOCOLS",
-           "AUTOPILOT_PROTOCOLS", "BLIND_RATE_HZ", "MIN_MESSAGE_RATE_HZ", "MIN_RATE_REASON", "resolve_protocol",
-           "line_problem"]
+           "AUTOPILOT_PROTOCOLS", "BLIND_RATE_HZ", "MIN_MESSAGE_RATE_HZ", "MIN_RATE_REASON", "FRESH_REPORT_US",
+           "FLOOR_REPORTS_HZ", "resolve_protocol", "line_problem"]
 
 log = logging.getLogger(__name__)
 
@@ -86,6 +86,14 @@ BUSY_FRACTION = 0.6
 #: and jitter. (PX4's EKF2 has no such limit, but "both" feeds ArduPilot too, and one floor
 #: keeps the baud rule simple.)
 MIN_MESSAGE_RATE_HZ = 7.0
+#: Reports go out at most this far apart (host µs) where the frames allow it: the floor's
+#: period alone, with reports ending on frames, let them drift to 200-227 ms apart at 9-10
+#: fps (a report waits for the frame after the period); ArduPilot's EKF3 and INAV need
+#: < 200 ms, less jitter.
+FRESH_REPORT_US = 180_000
+#: The most reports per second that freshness can ask for: with frames just over
+#: FRESH_REPORT_US / 2 apart (~11 fps), every frame is one (what the line check sizes for).
+FLOOR_REPORTS_HZ = 1e6 / (FRESH_REPORT_US / 2)
 #: Why :data:`MIN_MESSAGE_RATE_HZ`, for the error messages that enforce it.
 MIN_RATE_REASON = ("ArduPilot's EKF3 uses optical flow only while its newest sample is < 200 ms old, "
                    "and INAV drops an MSP flow sensor after 200 ms without an update")
@@ -250,7 +258,9 @@ def choose_message_rate(*, baud: int, bytes_per_message: int, cap_hz: float,
 
 def line_problem(*, baud: int, report: str, bytes_per_report: int, reserved_bytes_per_s: float,
                  reserved: str = "") -> str | None:
-    """Why a line of ``baud`` cannot carry :data:`MIN_MESSAGE_RATE_HZ` reports (a text that
+    """Why a line of ``baud`` cannot carry the fewest reports the autopilots use — at least
+    :data:`MIN_MESSAGE_RATE_HZ` a second, and up to :data:`FLOOR_REPORTS_HZ` with a camera
+    near 11 fps, each frame then one report to keep them < 200 ms apart (a text that
     continues "baud N is "), or None.
 
     Parameters
@@ -264,14 +274,15 @@ def line_problem(*, baud: int, report: str, bytes_per_report: int, reserved_byte
     reserved_bytes_per_s : float
         Traffic that is always sent (heartbeats), bytes/s; ``reserved`` names it.
     """
-    need = MIN_MESSAGE_RATE_HZ * bytes_per_report + reserved_bytes_per_s
+    need = FLOOR_REPORTS_HZ * bytes_per_report + reserved_bytes_per_s
     if need <= baud / 10.0:
         return None
     # Suggest a rate whose 60 % budget holds them, as the rate choice wants.
     fits = [b for b in STANDARD_BAUDS if b / 10.0 * BUSY_FRACTION >= need]
     advice = f"use {fits[0]} baud or more" if fits else "use a faster line"
-    return (f"too low: at least {MIN_MESSAGE_RATE_HZ:g} {report} reports per second "
-            f"({bytes_per_report} bytes each; {MIN_RATE_REASON}){reserved} need {need:.0f} bytes/s, "
+    return (f"too low: up to {FLOOR_REPORTS_HZ:.0f} {report} reports per second (at least "
+            f"{MIN_MESSAGE_RATE_HZ:g}, and every frame of a camera near 11 fps; {bytes_per_report} bytes "
+            f"each; {MIN_RATE_REASON}){reserved} need {need:.0f} bytes/s, "
             f"and {baud} baud carries {baud / 10.0:.0f} bytes/s (8N1); {advice} on both ends")
 
 
@@ -477,7 +488,10 @@ class FlowLink:
         # gap test, and a late frame can lift the threshold enough to pass as an ordinary one.
         late = integ.elapsed_us > 0 and dt > 0 and integ.elapsed_us + dt > integ.max_interval_us
         if late:
-            self._emit_pending(capture_host_us=self._last_capture_host_us, now=now)
+            # With quality 0: its counts end at the previous frame, but the autopilot's next
+            # interval runs from the previous message to now (INAV would divide them by that
+            # longer time, PX4 match them with the wrong gyro window).
+            self._emit_pending(capture_host_us=self._last_capture_host_us, now=now, quality0=True)
         accepted = integ.add_frame(timestamp_us=sample.timestamp_us, flow_x_px=sample.flow_x,
                                    flow_y_px=sample.flow_y, quality=sample.quality)
         if late:
@@ -505,9 +519,10 @@ class FlowLink:
             nominal = integ.nominal_interval_us or 0.0
             tolerance = 0.25 * nominal
             # ... and no later than the frame after which the next one would take the report
-            # past max_interval_us (a backstop: at MIN_MESSAGE_RATE_HZ the period ends first).
-            due = max(min(self.period_us - tolerance, integ.max_interval_us - nominal),
-                      self.min_report_span_us)
+            # past FRESH_REPORT_US (at the floor, frames 90-140 ms apart would otherwise wait
+            # for the frame after the period: 200-227 ms between reports) or max_interval_us.
+            due = max(min(self.period_us - tolerance, FRESH_REPORT_US - nominal,
+                          integ.max_interval_us - nominal), self.min_report_span_us)
             if integ.elapsed_us > 0 and integ.elapsed_us >= due:
                 self._emit_pending(capture_host_us=int(sample.capture_host_us), now=now)
         self._last_capture_host_us = int(sample.capture_host_us)
@@ -516,9 +531,11 @@ class FlowLink:
             self._send_extras(sample)
         self.transport.pump(now)
 
-    def _emit_pending(self, *, capture_host_us: int | None, now: int) -> None:
-        """Send the pending interval as a report."""
+    def _emit_pending(self, *, capture_host_us: int | None, now: int, quality0: bool = False) -> None:
+        """Send the pending interval as a report (``quality0``: with quality 0)."""
         interval = self.integrator.take()
+        if quality0:
+            interval = replace(interval, quality=0)
         if self._keepalive_in_interval:
             # The autopilot's interval began at the keep-alive, these counts earlier.
             interval = replace(interval, quality=0)
