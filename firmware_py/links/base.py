@@ -11,15 +11,20 @@ Timing model
 * **At least** :data:`MIN_MESSAGE_RATE_HZ` **(7) reports a second**: ArduPilot's EKF3 uses
   optical flow only while its newest sample is < 200 ms old, and INAV drops an MSP flow
   sensor after 200 ms without an update. A baud rate that cannot carry that is refused
-  (:func:`line_problem`), and the extra values get only what the flow leaves of the budget.
-  Reports end on frame boundaries: with frames more than 1/7 s apart each frame is a report
-  (the autopilot sees the camera's own, slower, rate), and at the floor itself a report may
-  wait up to 3/4 of a frame interval past 1/7 s (200 ms apart at 10 fps, 222 ms at 9 fps).
+  (:func:`line_problem`: sized for :data:`FLOOR_REPORTS_HZ`, below), and the extra values
+  get only what the flow leaves of the budget. Reports end on frame boundaries, but a
+  report is also due once the next frame (at the lower median of recent intervals) would
+  take it past :data:`FRESH_REPORT_US` (180 ms): at the floor alone, frames 90-114 ms apart
+  had them 181-228 ms apart. From ~11 fps down every frame can then be a report (up to
+  :data:`FLOOR_REPORTS_HZ` a second); frame jitter can still push one a little past 180 ms,
+  and with frames more than 180 ms apart each frame is a report (too few for the EKF3 and
+  INAV: the camera's own rate).
 * **No report spans more than 0.45 s** (the integrator's ``max_interval_us``; ArduPilot marks
   the sensor unhealthy without a message for 0.5 s, PX4 drops integration times >= 1 s): a
   report goes out on the last frame before the next one would take it past that span, and a
   frame that would take it past anyway (a late one) closes the pending report at the previous
-  frame and starts the next interval at itself.
+  frame, with quality 0 (its counts end there, the autopilot's interval at the late frame),
+  and starts the next interval at itself.
 * ``service(now_host_us)`` does everything that depends on host time: reopening the port,
   reading the autopilot's side, heartbeats, and the blind keep-alive.
 * **Blind camera.** ArduPilot marks the flow sensor unhealthy when the last message is
