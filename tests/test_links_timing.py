@@ -521,6 +521,16 @@ PENDING_FRAMES = 3
 AFTER_US = [FAST_US] * 30
 
 
+def _link_at_the_floor(tmp_path, autopilot):
+    """A link at the 7 Hz floor on a fast line, its message log, and the autopilot's ears:
+    ``(peer, log_path, link, flight_controller)``."""
+    peer = PtyPeer(tmp_path / "ttyFC")
+    log_path = tmp_path / "messages.jsonl"
+    link = open_link(LinkConfig(port=peer.path, baud=921600, autopilot=autopilot, focal_length_px=F,
+                                message_rate_hz=7.0, message_log=str(log_path)))
+    return peer, log_path, link, FlightController(peer, autopilot)
+
+
 @pytest.mark.parametrize("autopilot", ["px4", "ardupilot", "inav"])
 @pytest.mark.parametrize("late_us", [370_000, 420_000], ids=["late-370ms", "late-420ms"])
 def test_a_late_frame_closes_the_pending_report_within_the_span_cap(tmp_path, autopilot, late_us):
@@ -532,11 +542,7 @@ def test_a_late_frame_closes_the_pending_report_within_the_span_cap(tmp_path, au
     the ~0 s since that report). The camera stalls here, the daemon goes on: keep-alives go
     out during the wait (test_a_late_frame_after_an_engine_stall_... has none). At 30 fps
     either wait is past the gap threshold (5 frames) as well."""
-    peer = PtyPeer(tmp_path / "ttyFC")
-    log_path = tmp_path / "messages.jsonl"
-    link = open_link(LinkConfig(port=peer.path, baud=921600, autopilot=autopilot, focal_length_px=F,
-                                message_rate_hz=7.0, message_log=str(log_path)))
-    fc = FlightController(peer, autopilot)
+    peer, log_path, link, fc = _link_at_the_floor(tmp_path, autopilot)
     start = host_us()
     intervals = JITTER_US + [FAST_US] * FAST_BEFORE + [late_us] + AFTER_US
     frames = stream(start, intervals, engine_us=3_000, flow_px_per_s=FLOW)
@@ -588,11 +594,7 @@ def test_a_late_frame_after_an_engine_stall_closes_the_pending_report_with_quali
     (a seventh of the true rate), PX4 match them with 467 ms of its gyro. The reports after it
     are good from the first on, their counts starting at the late frame."""
     flow = (0.0, 100.0)     # 1 rad/s: 1 count is < 1 % of an INAV rate over 167 ms
-    peer = PtyPeer(tmp_path / "ttyFC")
-    log_path = tmp_path / "messages.jsonl"
-    link = open_link(LinkConfig(port=peer.path, baud=921600, autopilot=autopilot, focal_length_px=F,
-                                message_rate_hz=7.0, message_log=str(log_path)))
-    fc = FlightController(peer, autopilot)
+    peer, log_path, link, fc = _link_at_the_floor(tmp_path, autopilot)
     start = host_us()
     stall_us, stall_after = 400_000, 22      # frames 1-20: 4 reports; then 2 frames pending
     intervals = [FAST_US] * stall_after + [stall_us] + [FAST_US] * 30
