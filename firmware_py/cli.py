@@ -132,10 +132,9 @@ def main(argv: list[str] | None = None) -> int:
         if problem:  # (a port that does not exist yet is retried: USB adapters come and go)
             raise ConfigError(f"{config.path or 'configuration'}: [link] port (--serial) "
                               f"{config.link.port}: {problem}")
-        problem = _line_problem(config)
-        if problem:  # before the camera opens and the kernels build: the daemon refuses it anyway
-            raise ConfigError(f"{config.path or 'configuration'}: [link] baud = {config.link.baud} (--baud) "
-                              f"is {problem}")
+        from .daemon import link_config
+
+        link_config(config)  # before the camera opens and the kernels build
     except ConfigError as exc:
         log.error("%s", exc)
         return EXIT_CONFIG
@@ -143,15 +142,6 @@ def main(argv: list[str] | None = None) -> int:
     for note in config.cautions():
         log.warning("%s", note)
     return run_daemon(config)
-
-
-def _line_problem(config) -> str | None:
-    """Why the configured baud rate cannot carry the flow messages at all, or None."""
-    from .links import LinkConfig, line_problem
-
-    c = config.link
-    return line_problem(LinkConfig(baud=c.baud, autopilot=config.link_autopilot(), protocol=c.protocol,
-                                   heartbeat_rate_hz=c.heartbeat_rate_hz))
 
 
 def run_daemon(config, *, daemon=None) -> int:

@@ -431,6 +431,34 @@ def _percentiles(values) -> tuple[float, float]:
     return float(p50), float(p99)
 
 
+def link_config(config, focal_length_px: float | None = None):
+    """The :class:`~firmware_py.links.LinkConfig` of a daemon configuration, its settings
+    checked: what LinkConfig refuses, and a baud rate too low for the fewest reports the
+    autopilots use (:func:`~firmware_py.links.line_problem`), is a ConfigError naming
+    ``[link]`` (exit 2, no restart). ``focal_length_px`` None: LinkConfig's default (the
+    settings check before the camera says its own)."""
+    from .links import LinkConfig, line_problem
+
+    c = config.link
+    where = f"{config.path or 'configuration'}: [link]"
+    optional = {} if focal_length_px is None else {"focal_length_px": focal_length_px}
+    try:
+        settings = LinkConfig(
+            port=c.port, baud=c.baud, autopilot=config.link_autopilot(), protocol=c.protocol,
+            mounting_rotation_deg=config.optics.mounting_rotation_deg,
+            mounting_mirror=config.optics.mounting_mirror,
+            sysid=c.sysid, compid=c.compid, sensor_id=c.sensor_id,
+            message_rate_hz=c.message_rate_hz, heartbeat_rate_hz=c.heartbeat_rate_hz,
+            ground_distance_m=c.ground_distance_m, message_log=c.message_log,
+            extra_values=c.extra_values, msp_counts_per_degree=c.msp_counts_per_degree, **optional)
+    except ValueError as exc:
+        raise ConfigError(f"{where} {exc}") from None
+    problem = line_problem(settings)
+    if problem:
+        raise ConfigError(f"{where} baud = {c.baud} (--baud) is {problem}")
+    return settings
+
+
 class Daemon:
     """The running appliance.
 
@@ -499,26 +527,10 @@ class Daemon:
             raise ConfigError(str(exc) if "(EMDFLOW_OPENCL_DEVICE)" in str(exc) else f"[engine]: {exc}") from None
 
     def _default_link(self, focal_length_px: float):
-        from .links import LinkConfig, line_problem, open_link
+        from .links import open_link
 
-        c = self.config.link
-        where = f"{self.config.path or 'configuration'}: [link]"
-        try:  # the settings' own checks: a ValueError here is a setting (exit 2, no restart)
-            config = LinkConfig(
-                port=c.port, baud=c.baud, autopilot=self.config.link_autopilot(), protocol=c.protocol,
-                focal_length_px=focal_length_px,
-                mounting_rotation_deg=self.config.optics.mounting_rotation_deg,
-                mounting_mirror=self.config.optics.mounting_mirror,
-                sysid=c.sysid, compid=c.compid, sensor_id=c.sensor_id,
-                message_rate_hz=c.message_rate_hz, heartbeat_rate_hz=c.heartbeat_rate_hz,
-                ground_distance_m=c.ground_distance_m, message_log=c.message_log,
-                extra_values=c.extra_values, msp_counts_per_degree=c.msp_counts_per_degree)
-        except ValueError as exc:
-            raise ConfigError(f"{where} {exc}") from None
-        problem = line_problem(config)
-        if problem:  # a baud rate too low for the fewest reports the autopilots use
-            raise ConfigError(f"{where} baud = {c.baud} is {problem}")
-        return open_link(config)  # (anything it raises now is a failure, not a setting)
+        # (anything open_link raises is a failure, not a setting: those were checked)
+        return open_link(link_config(self.config, focal_length_px))
 
     # -- start-up ---------------------------------------------------------------------
     def _start_source(self) -> SourceKeeper:

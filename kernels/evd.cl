@@ -75,6 +75,23 @@ __attribute__((always_inline)) inline uint8 matches(__global const uint *planes,
     return fired;
 }
 
+/* Fusion of channel c's matches mp (positive direction) and mn (negative), channels taken
+ * from the fastest down: where no faster channel fired, c wins where exactly one direction
+ * fired (both = ambiguous: no output), its index c + 1 goes into the bit planes idx0..idx3
+ * and the sign plane; either direction marks the pixel decided. A macro, not a function:
+ * the same text in both loops, and the compiler keeps every plane in a register (a helper
+ * taking them by pointer measured 8-10 % slower). */
+#define FUSE_CHANNEL(c, mp, mn)                                              \
+    do {                                                                     \
+        const uint8 p_ = (mp) & ~decided, n_ = (mn) & ~decided, won_ = p_ ^ n_; \
+        sign |= n_ & ~p_;                                                    \
+        if (((c) + 1) & 1) idx0 |= won_;                                     \
+        if (((c) + 1) & 2) idx1 |= won_;                                     \
+        if (((c) + 1) & 4) idx2 |= won_;                                     \
+        if (((c) + 1) & 8) idx3 |= won_;                                     \
+        decided |= (mp) | (mn);                                              \
+    } while (0)
+
 __kernel void velocity_detectors(__global const uint *planes, __global char *result,
                                  __global uint *debug, __global const ushort *sat, __global const uchar *P, int t,
                                  int theta_q, __global const uint *bright)
@@ -102,13 +119,7 @@ __kernel void velocity_detectors(__global const uint *planes, __global char *res
             STORE_W8(debug + (c * 4 + 2 * axis) * OUT_PLANE + f, mp);
             STORE_W8(debug + (c * 4 + 2 * axis + 1) * OUT_PLANE + f, mn);
 #endif
-            const uint8 p = mp & ~decided, n = mn & ~decided, won = p ^ n;
-            sign |= n & ~p;
-            if ((c + 1) & 1) idx0 |= won;
-            if ((c + 1) & 2) idx1 |= won;
-            if ((c + 1) & 4) idx2 |= won;
-            if ((c + 1) & 8) idx3 |= won;
-            decided |= mp | mn;
+            FUSE_CHANNEL(c, mp, mn);
         }
         /* planes (axis, bit, flat word) */
         __global uint *o = out + axis * 5 * OUT_PLANE;
@@ -147,13 +158,7 @@ __kernel void velocity_detectors(__global const uint *planes, __global char *res
 #pragma unroll
         for (int c = NCH - 1; c >= 0; c--) {
             const uint8 mp = matches(planes, c, t, f, 1, uy), mn = matches(planes, c, t, f, -1, -uy);
-            const uint8 p = mp & ~decided, n = mn & ~decided, won = p ^ n;
-            sign |= n & ~p;
-            if ((c + 1) & 1) idx0 |= won;
-            if ((c + 1) & 2) idx1 |= won;
-            if ((c + 1) & 4) idx2 |= won;
-            if ((c + 1) & 8) idx3 |= won;
-            decided |= mp | mn;
+            FUSE_CHANNEL(c, mp, mn);
         }
         if (!lane_popcount(idx0 | idx1 | idx2 | idx3)) continue;
         /* the words of the run, one by one (vector lanes cannot be indexed by a variable;
