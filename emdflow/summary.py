@@ -28,7 +28,8 @@ Method
    detections counts like ``√n`` independent ones: neighbouring detections are not
    independent, and a texture's few strong edge orientations would otherwise dominate),
    searched coarse-to-fine on a polar grid (log speed × direction) around the IoC guess:
-   7×7 candidates over ±0.45 in log speed and ±24°, then 7×7 over ±0.12 and ±4.5°, then
+   7×7 candidates from −0.45 to +0.9 in log speed (the guess under-reads fast flow off
+   the axes, see ``_SEARCH_LEVELS``) and over ±24°, then 7×7 over ±0.12 and ±4.5°, then
    the vertex of a parabola through the best candidate and its neighbours. Each row's β
    is taken at the centre direction of a level, which pulls a level's answer towards its
    centre; so the fine level runs a second time, centred on the first one's answer with
@@ -323,6 +324,12 @@ class FlowSummary:
         return math.hypot(self.flow_x, self.flow_y)
 
 
+#: The highest ``SummaryOptions.search_reach``: the coarse level's step, (0.45 + reach) / 6
+#: (``_SEARCH_LEVELS``), stays within 0.24, twice the fine levels' reach, so no answer
+#: falls between what they cover.
+SEARCH_REACH_MAX = 0.99
+
+
 @dataclasses.dataclass(frozen=True)
 class SummaryOptions:
     """Tuning of :func:`summarize` (defaults measured on texture flights, see README).
@@ -410,6 +417,14 @@ class SummaryOptions:
         step-edge grounds keep their accuracy at every margin from 0 to 30, the turned line
         grids gain most from 0 to 5; above 0 the edge table, which natural ground is
         closer to, keeps the benefit of the doubt.
+    search_reach : float
+        How far above the IoC guess the search's coarse level reaches, in log speed
+        (0.9: 2.5× the guess; it reaches 0.45 below, in 7 steps, and at most 0.99 above,
+        where its steps would outgrow what the finer levels' ±0.12 cover). The guess
+        under-reads fast flow off the axes (0.59× the truth at 13 px/frame 10–60° off an
+        axis, extended model, 320×240), and with the former symmetric reach, 0.45, the
+        search stopped short: those flights read a 10th-percentile 0.69× their speed,
+        now 0.79× (README, "The search's reach").
     """
 
     min_textured: float = 0.01
@@ -433,6 +448,7 @@ class SummaryOptions:
     misfit_weight: float = 0.3
     ground: str = "auto"
     line_ground_margin: float = 5.0
+    search_reach: float = 0.9
 
     def __post_init__(self):
         if self.ground not in GROUNDS:
@@ -451,6 +467,7 @@ class SummaryOptions:
             ("quality_error", 0.0, False, math.inf, False),
             ("row_exponent", 0.0, False, 1.0, True), ("misfit_weight", 0.0, True, math.inf, False),
             ("line_ground_margin", -math.inf, False, math.inf, False),
+            ("search_reach", 0.0, False, SEARCH_REACH_MAX, True),
         )
         for name, lo, lo_in, hi, hi_in in ranges:
             value = getattr(self, name)
@@ -556,13 +573,20 @@ _DIRECTIONS = 1440
 _DIR_STEP = 2.0 * math.pi / _DIRECTIONS
 #: Padding of the direction tables (more than the widest search span).
 _PAD = 160
-#: Coarse-to-fine search: (± log-speed span, direction step in _DIRECTIONS units, points
-#: per axis). Level 0 spans ±0.45 in log speed and ±24° around the IoC guess; the finer
-#: levels are refined by a parabola through the best point and its neighbours. Each level
-#: takes the rows' β at its centre, so the fine level runs twice: the second time centred
-#: on (and with β from) the first one's answer, which removes most of the pull towards
-#: the coarse level's β (extended model, random directions: 2.37° → 2.22°).
-_SEARCH_LEVELS = ((0.45, 32, 7), (0.12, 6, 7), (0.12, 6, 7))
+#: Coarse-to-fine search: (lowest and highest log-speed offset, direction step in
+#: _DIRECTIONS units, points per axis); level 0's highest offset is
+#: ``SummaryOptions.search_reach``. Level 0 spans ±24° around the IoC guess and, in log
+#: speed, −0.45 to +0.9 by default (steps of 0.225, half of which the fine levels' ±0.12
+#: cover): lopsided because the guess under-reads fast flow off the axes (extended model,
+#: 320×240, flights 10–60° off an axis: median guess / true speed 0.71 at 9 px/frame,
+#: 0.59 at 13; 0.91–0.99 along the axes), and from ±0.45 the search could not reach the
+#: truth — the answer's 10th-percentile speed / true there was 0.69 at 13 px/frame (0.56
+#: at 640×480), now 0.79 (0.75). The finer levels are refined by a parabola through the
+#: best point and its neighbours. Each level takes the rows' β at its centre, so the fine
+#: level runs twice: the second time centred on (and with β from) the first one's answer,
+#: which removes most of the pull towards the coarse level's β (extended model, random
+#: directions: 2.37° → 2.22°).
+_SEARCH_LEVELS = ((-0.45, None, 32, 7), (-0.12, 0.12, 6, 7), (-0.12, 0.12, 6, 7))
 #: Level whose grid gives the curvature of the log-likelihood (expected error).
 _CURVATURE_LEVEL = 1
 
@@ -588,7 +612,8 @@ class _LikelihoodModel:
     frame only gathers the curves of its nonzero counts.
     """
 
-    def __init__(self, table: dict, max_axis_angle: float, outlier: float, params: EngineParams):
+    def __init__(self, table: dict, max_axis_angle: float, outlier: float, params: EngineParams,
+                 search_reach: float):
         prob = np.asarray(table["prob"], np.float64)  # ([class,] ψ, β, u, category)
         # the diagonal detectors' table (EngineParams.diagonal_evidence), same layout
         prob_diagonal = np.asarray(table.get("prob_diagonal", prob), np.float64)
@@ -677,11 +702,11 @@ class _LikelihoodModel:
         # search grids: (log-speed offsets, direction step, its offsets, exp(offsets),
         # padded direction offsets)
         self.levels = []
-        for dl, dstep, m in _SEARCH_LEVELS:
-            ls = np.linspace(-dl, dl, m)
+        for lowest, highest, dstep, m in _SEARCH_LEVELS:
+            ls = np.linspace(lowest, search_reach if highest is None else highest, m)
             doff = (np.arange(m) - (m - 1) // 2) * dstep
             self.levels.append((ls, doff, dstep, np.exp(ls).astype(np.float32), doff + _PAD))
-        self.parabola = [_parabola_weights(m) for _, _, m in _SEARCH_LEVELS]
+        self.parabola = [_parabola_weights(m) for *_, m in _SEARCH_LEVELS]
         # the deviance the calibration flights themselves show, against log speed (tables
         # without it: no misfit term)
         self.misfit_log_speeds = self.misfit_baseline = None
@@ -760,7 +785,7 @@ def calibration_for(params: EngineParams, ground: str = "edges"):
 
 def _model_for(params: EngineParams, opts: SummaryOptions, ground: str = "edges"):
     """The likelihood model for these channels and ground, or None when they have no table."""
-    key = (params, opts.max_axis_angle, opts.outlier_probability, ground)
+    key = (params, opts.max_axis_angle, opts.outlier_probability, opts.search_reach, ground)
     if key in _MODEL_CACHE:
         return _MODEL_CACHE[key]
     path = calibration_for(params, ground)
@@ -791,7 +816,7 @@ def _model_for(params: EngineParams, opts: SummaryOptions, ground: str = "edges"
             t = dict(t, prob=p)
             if pd is not None:
                 t["prob_diagonal"] = pd
-            return _LikelihoodModel(t, opts.max_axis_angle, opts.outlier_probability, params)
+            return _LikelihoodModel(t, opts.max_axis_angle, opts.outlier_probability, params, opts.search_reach)
 
         model = (edges, [(build(table, p, pd) if by_class else None, build(bare, f, fd))
                          for p, pd, f, fd in zip(per_class, per_class_d, folded, folded_d)])
