@@ -581,7 +581,7 @@ _PAD = 160
 #: 320×240, flights 10–60° off an axis: median guess / true speed 0.71 at 9 px/frame,
 #: 0.59 at 13; 0.91–0.99 along the axes), and from ±0.45 the search could not reach the
 #: truth — the answer's 10th-percentile speed / true there was 0.69 at 13 px/frame (0.56
-#: at 640×480), now 0.79 (0.75). The finer levels are refined by a parabola through the
+#: at 640×480), now 0.79 (0.78). The finer levels are refined by a parabola through the
 #: best point and its neighbours. Each level takes the rows' β at its centre, so the fine
 #: level runs twice: the second time centred on (and with β from) the first one's answer,
 #: which removes most of the pull towards the coarse level's β (extended model, random
