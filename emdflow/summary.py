@@ -28,11 +28,12 @@ Method
    detections counts like ``√n`` independent ones: neighbouring detections are not
    independent, and a texture's few strong edge orientations would otherwise dominate),
    searched coarse-to-fine on a polar grid (log speed × direction) around the IoC guess:
-   7×7 candidates from −0.45 to +0.9 in log speed (the guess under-reads fast flow off
-   the axes, see ``_SEARCH_LEVELS``) and over ±24°, then 7×7 over ±0.12 and ±4.5°, then
-   the vertex of a parabola through the best candidate and its neighbours. Each row's β
-   is taken at the centre direction of a level, which pulls a level's answer towards its
-   centre; so the fine level runs a second time, centred on the first one's answer with
+   7×7 candidates over ±0.45 in log speed and ±24° (moved up by 0.45, at most twice, while
+   the best is in the fastest row: the guess under-reads fast flow off the axes, see
+   ``_SEARCH_LEVELS``), then 7×7 over ±0.12 and ±4.5°, then the vertex of a parabola
+   through the best candidate and its neighbours. Each row's β is taken at the centre
+   direction of a level, which pulls a level's answer towards its centre; so the fine
+   level runs a second time, centred on the first one's answer with
    β from there (that pass alone takes the extended model from 2.37° to 2.22° median
    direction error on random directions, and the paper's from 2.42° to 2.37°; evaluating
    β at every candidate instead measured worse, 2.64°, as did a table without the β
@@ -133,12 +134,13 @@ grids and a fifth over step edges, and read the +0.3 rad set's directions worse 
 
 Measured accuracy
 -----------------
-OpenCL backend (bit-identical to numpy), 320×240, noise σ = 2, 9 speeds (1, 2, 3, 4, 5, 7,
-9, 11, 13 px/frame) × 4 evaluation textures (gravel, brick, grass, camera — the
-calibration never saw them) × 8 directions × 6 frames = 1728 frames per set; quality-0
-frames count as 100 % error (none occurred: coverage 100 %)
-(``python -m emdflow.tools.calibrate_summary evaluate --offset 0`` / ``--offset 0.3`` /
-``--random``). Median relative error, median direction error:
+(With the former search, ``search_climbs=0``, which reads 9–13 px/frame off the axes
+lower; README, "The search's reach", has both.) OpenCL backend (bit-identical to numpy),
+320×240, noise σ = 2, 9 speeds (1, 2, 3, 4, 5, 7, 9, 11, 13 px/frame) × 4 evaluation
+textures (gravel, brick, grass, camera — the calibration never saw them) × 8 directions ×
+6 frames = 1728 frames per set; quality-0 frames count as 100 % error (none occurred:
+coverage 100 %) (``python -m emdflow.tools.calibrate_summary evaluate --offset 0`` /
+``--offset 0.3`` / ``--random``). Median relative error, median direction error:
 
 ============================  ==============  ==============
 directions                    previous ML     this summary
@@ -324,12 +326,6 @@ class FlowSummary:
         return math.hypot(self.flow_x, self.flow_y)
 
 
-#: The highest ``SummaryOptions.search_reach``: the coarse level's step, (0.45 + reach) / 6
-#: (``_SEARCH_LEVELS``), stays within 0.24, twice the fine levels' reach, so no answer
-#: falls between what they cover.
-SEARCH_REACH_MAX = 0.99
-
-
 @dataclasses.dataclass(frozen=True)
 class SummaryOptions:
     """Tuning of :func:`summarize` (defaults measured on texture flights, see README).
@@ -417,14 +413,14 @@ class SummaryOptions:
         step-edge grounds keep their accuracy at every margin from 0 to 30, the turned line
         grids gain most from 0 to 5; above 0 the edge table, which natural ground is
         closer to, keeps the benefit of the doubt.
-    search_reach : float
-        How far above the IoC guess the search's coarse level reaches, in log speed
-        (0.9: 2.5× the guess; it reaches 0.45 below, in 7 steps, and at most 0.99 above,
-        where its steps would outgrow what the finer levels' ±0.12 cover). The guess
+    search_climbs : int
+        How often the likelihood search's coarse level (±0.45 in log speed around the IoC
+        guess) is centred on its fastest row and searched again while its best candidate
+        lies there (0 to 8; 2: its rows reach 3.9× the guess instead of 1.57×). The guess
         under-reads fast flow off the axes (0.59× the truth at 13 px/frame 10–60° off an
-        axis, extended model, 320×240), and with the former symmetric reach, 0.45, the
-        search stopped short: those flights read a 10th-percentile 0.69× their speed,
-        now 0.79× (README, "The search's reach").
+        axis, extended model, 320×240), and the search without climbs (0, as before)
+        stopped short of it (README, "The search's reach"). A frame whose best coarse
+        candidate is not in the fastest row is searched exactly as without climbs.
     """
 
     min_textured: float = 0.01
@@ -448,7 +444,7 @@ class SummaryOptions:
     misfit_weight: float = 0.3
     ground: str = "auto"
     line_ground_margin: float = 5.0
-    search_reach: float = 0.9
+    search_climbs: int = 2
 
     def __post_init__(self):
         if self.ground not in GROUNDS:
@@ -467,7 +463,6 @@ class SummaryOptions:
             ("quality_error", 0.0, False, math.inf, False),
             ("row_exponent", 0.0, False, 1.0, True), ("misfit_weight", 0.0, True, math.inf, False),
             ("line_ground_margin", -math.inf, False, math.inf, False),
-            ("search_reach", 0.0, False, SEARCH_REACH_MAX, True),
         )
         for name, lo, lo_in, hi, hi_in in ranges:
             value = getattr(self, name)
@@ -477,6 +472,10 @@ class SummaryOptions:
                 raise ValueError(f"SummaryOptions({name}={value!r}): expected a number "
                                  f"{'≥' if lo_in else '>'} {lo:g}"
                                  + (f" and {'≤' if hi_in else '<'} {hi:g}" if math.isfinite(hi) else ""))
+        if not (isinstance(self.search_climbs, numbers.Integral) and not isinstance(self.search_climbs, bool)
+                and 0 <= self.search_climbs <= 8):
+            raise ValueError(f"SummaryOptions(search_climbs={self.search_climbs!r}): expected a whole number "
+                             "from 0 to 8")
         if self.top_speed is not None and not (isinstance(self.top_speed, numbers.Real)
                                                and math.isfinite(self.top_speed) and self.top_speed > 0):
             raise ValueError(f"SummaryOptions(top_speed={self.top_speed!r}): expected None or a number > 0 "
@@ -573,20 +572,19 @@ _DIRECTIONS = 1440
 _DIR_STEP = 2.0 * math.pi / _DIRECTIONS
 #: Padding of the direction tables (more than the widest search span).
 _PAD = 160
-#: Coarse-to-fine search: (lowest and highest log-speed offset, direction step in
-#: _DIRECTIONS units, points per axis); level 0's highest offset is
-#: ``SummaryOptions.search_reach``. Level 0 spans ±24° around the IoC guess and, in log
-#: speed, −0.45 to +0.9 by default (steps of 0.225, half of which the fine levels' ±0.12
-#: cover): lopsided because the guess under-reads fast flow off the axes (extended model,
-#: 320×240, flights 10–60° off an axis: median guess / true speed 0.71 at 9 px/frame,
-#: 0.59 at 13; 0.91–0.99 along the axes), and from ±0.45 the search could not reach the
-#: truth — the answer's 10th-percentile speed / true there was 0.69 at 13 px/frame (0.56
-#: at 640×480), now 0.79 (0.78). The finer levels are refined by a parabola through the
-#: best point and its neighbours. Each level takes the rows' β at its centre, so the fine
-#: level runs twice: the second time centred on (and with β from) the first one's answer,
-#: which removes most of the pull towards the coarse level's β (extended model, random
+#: Coarse-to-fine search: (± log-speed span, direction step in _DIRECTIONS units, points
+#: per axis). Level 0 spans ±0.45 in log speed and ±24° around the IoC guess; while its
+#: best candidate is in its fastest row it is centred there and searched again, at most
+#: ``SummaryOptions.search_climbs`` times (2: its rows then reach 3.9× the guess instead
+#: of 1.57×), because the guess under-reads fast flow off the axes (extended model,
+#: 320×240, flights 10–60° off an axis: median guess / true speed 0.71 at 9 px/frame, 0.59
+#: at 13; 0.91–0.99 along the axes) and a search that stops at 1.57× the guess cannot
+#: reach the truth there. The finer levels are refined by a parabola through the best
+#: point and its neighbours. Each level takes the rows' β at its centre, so the fine level
+#: runs twice: the second time centred on (and with β from) the first one's answer, which
+#: removes most of the pull towards the coarse level's β (extended model, random
 #: directions: 2.37° → 2.22°).
-_SEARCH_LEVELS = ((-0.45, None, 32, 7), (-0.12, 0.12, 6, 7), (-0.12, 0.12, 6, 7))
+_SEARCH_LEVELS = ((0.45, 32, 7), (0.12, 6, 7), (0.12, 6, 7))
 #: Level whose grid gives the curvature of the log-likelihood (expected error).
 _CURVATURE_LEVEL = 1
 
@@ -612,8 +610,7 @@ class _LikelihoodModel:
     frame only gathers the curves of its nonzero counts.
     """
 
-    def __init__(self, table: dict, max_axis_angle: float, outlier: float, params: EngineParams,
-                 search_reach: float):
+    def __init__(self, table: dict, max_axis_angle: float, outlier: float, params: EngineParams):
         prob = np.asarray(table["prob"], np.float64)  # ([class,] ψ, β, u, category)
         # the diagonal detectors' table (EngineParams.diagonal_evidence), same layout
         prob_diagonal = np.asarray(table.get("prob_diagonal", prob), np.float64)
@@ -702,11 +699,11 @@ class _LikelihoodModel:
         # search grids: (log-speed offsets, direction step, its offsets, exp(offsets),
         # padded direction offsets)
         self.levels = []
-        for lowest, highest, dstep, m in _SEARCH_LEVELS:
-            ls = np.linspace(lowest, search_reach if highest is None else highest, m)
+        for dl, dstep, m in _SEARCH_LEVELS:
+            ls = np.linspace(-dl, dl, m)
             doff = (np.arange(m) - (m - 1) // 2) * dstep
             self.levels.append((ls, doff, dstep, np.exp(ls).astype(np.float32), doff + _PAD))
-        self.parabola = [_parabola_weights(m) for *_, m in _SEARCH_LEVELS]
+        self.parabola = [_parabola_weights(m) for _, _, m in _SEARCH_LEVELS]
         # the deviance the calibration flights themselves show, against log speed (tables
         # without it: no misfit term)
         self.misfit_log_speeds = self.misfit_baseline = None
@@ -785,7 +782,7 @@ def calibration_for(params: EngineParams, ground: str = "edges"):
 
 def _model_for(params: EngineParams, opts: SummaryOptions, ground: str = "edges"):
     """The likelihood model for these channels and ground, or None when they have no table."""
-    key = (params, opts.max_axis_angle, opts.outlier_probability, opts.search_reach, ground)
+    key = (params, opts.max_axis_angle, opts.outlier_probability, ground)
     if key in _MODEL_CACHE:
         return _MODEL_CACHE[key]
     path = calibration_for(params, ground)
@@ -816,7 +813,7 @@ def _model_for(params: EngineParams, opts: SummaryOptions, ground: str = "edges"
             t = dict(t, prob=p)
             if pd is not None:
                 t["prob_diagonal"] = pd
-            return _LikelihoodModel(t, opts.max_axis_angle, opts.outlier_probability, params, opts.search_reach)
+            return _LikelihoodModel(t, opts.max_axis_angle, opts.outlier_probability, params)
 
         model = (edges, [(build(table, p, pd) if by_class else None, build(bare, f, fd))
                          for p, pd, f, fd in zip(per_class, per_class_d, folded, folded_d)])
@@ -1050,9 +1047,10 @@ def _fitted_curves(model: _LikelihoodModel, full: np.ndarray, summed: np.ndarray
     return curves, saturated, gathered
 
 
-def _likelihood_fit(model: _LikelihoodModel, curves, U0: float, V0: float):
+def _likelihood_fit(model: _LikelihoodModel, curves, U0: float, V0: float, climbs: int):
     """Coarse-to-fine polar search; returns (U, V, σ of log-speed, σ of direction, the
-    log-likelihood at the final level's best grid point)."""
+    log-likelihood at the final level's best grid point). ``climbs``: how often the coarse
+    level may move up to its fastest row (``SummaryOptions.search_climbs``)."""
     log_s, d = _polar(model, U0, V0)
     sig_s = sig_a = math.inf
     last = len(model.levels) - 1
@@ -1061,6 +1059,15 @@ def _likelihood_fit(model: _LikelihoodModel, curves, U0: float, V0: float):
         ls, doff = level[0], level[1]
         best = int(np.argmax(L))
         bi, bj = divmod(best, L.shape[1])
+        for _ in range(climbs if level_index == 0 else 0):
+            if bi < L.shape[0] - 1:
+                break
+            # the best is the fastest row: the flow may lie beyond it (the guess reads low)
+            log_s += ls[bi]
+            d = (d + int(doff[bj])) % _DIRECTIONS
+            L = _loglik_grid(model, curves, log_s, d, level)
+            best = int(np.argmax(L))
+            bi, bj = divmod(best, L.shape[1])
         if level_index == _CURVATURE_LEVEL:
             weights = model.parabola[level_index]
             sig_s = _curvature_sigma(weights, L[:, bj], ls[1] - ls[0])
@@ -1203,7 +1210,7 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
     fitted = _fitted_curves(model, full, hist, opts) if model is not None else None
     if fitted is not None:
         curves, saturated, gathered = fitted
-        U1, V1, sig_s, sig_a, loglik = _likelihood_fit(model, curves, U, V)
+        U1, V1, sig_s, sig_a, loglik = _likelihood_fit(model, curves, U, V, opts.search_climbs)
         line_model = _model_of(field, opts, "lines") if opts.ground == "auto" else None
         # without gradient-strength classes the line table cannot tell lines from edges
         # (README, "Thin lines read slow"): only a histogram with classes gets its fit
@@ -1212,7 +1219,7 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
             # saturated model depends on the counts alone, so the deviances compare
             line_fitted = _fitted_curves(line_model, full, hist, opts, gathered)
             if line_fitted is not None:
-                line_fit = _likelihood_fit(line_model, line_fitted[0], U, V)
+                line_fit = _likelihood_fit(line_model, line_fitted[0], U, V, opts.search_climbs)
                 if line_fit[4] > loglik + opts.line_ground_margin:
                     model, (curves, saturated, _) = line_model, line_fitted
                     U1, V1, sig_s, sig_a, loglik = line_fit
