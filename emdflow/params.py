@@ -217,7 +217,8 @@ class EngineParams:
         slides the ground sideways under its receptors: over granular ground the minor
         axis of a fast oblique flow goes blind, while the diagonal nearest the flow sees
         it with little sideways motion. The paper's model on random flights at 320×240:
-        6.3 % / 1.96° median error instead of 8.9 % / 2.37°, for 9–16 % more engine time
+        6.3 % / 1.96° median error instead of 8.9 % / 2.37° (both with the summary's former
+        search, ``SummaryOptions(search_climbs=0)``), for 9–16 % more engine time
         at 640×480 (README, "Diagonal evidence" and "The diagonal evidence's cost"). False
         gives the former evidence and tables.
     """

@@ -28,9 +28,9 @@ Method
    detections counts like ``√n`` independent ones: neighbouring detections are not
    independent, and a texture's few strong edge orientations would otherwise dominate),
    searched coarse-to-fine on a polar grid (log speed × direction) around the IoC guess:
-   7×7 candidates over ±0.45 in log speed and ±24° (moved up by 0.45, at most twice, while
-   the best is in the fastest row: the guess under-reads fast flow off the axes, see
-   ``_SEARCH_LEVELS``), then 7×7 over ±0.12 and ±4.5°, then the vertex of a parabola
+   7×7 candidates over ±0.45 in log speed and ±24° (re-centred on the best candidate while
+   it is in the fastest row, at most ``search_climbs`` = 2 times: the guess under-reads
+   fast flow off the axes, see ``_SEARCH_LEVELS``), then 7×7 over ±0.12 and ±4.5°, then the vertex of a parabola
    through the best candidate and its neighbours. Each row's β is taken at the centre
    direction of a level, which pulls a level's answer towards its centre; so the fine
    level runs a second time, centred on the first one's answer with
@@ -117,7 +117,8 @@ only estimators with the same setting). Step 1 (the IoC guess) and the quality's
 detection count read the horizontal and vertical axes alone. Over granular ground a
 fast oblique flow blinds the vertical detectors (the ground slides sideways under their
 receptors), and the diagonal nearest the flow still sees it: the paper's model on random
-flights, 8.9 % / 2.37° → 6.3 % / 1.96° median error (README, "Diagonal evidence").
+flights, 8.9 % / 2.37° → 6.3 % / 1.96° median error (README, "Diagonal evidence"; both
+with the former search, ``search_climbs=0``).
 
 **Line ground.** Thin lines (mortar joints, paving, tiles) fire only the scale of their
 speed where an edge also fires the larger ones, so the edge table reads them slow (brick
@@ -417,8 +418,8 @@ class SummaryOptions:
         How often the likelihood search's coarse level (±0.45 in log speed around the IoC
         guess) is centred on its fastest row and searched again while its best candidate
         lies there (0 to 8; 2: its rows reach 3.9× the guess instead of 1.57×). The guess
-        under-reads fast flow off the axes (0.59× the truth at 13 px/frame 10–60° off an
-        axis, extended model, 320×240), and the search without climbs (0, as before)
+        under-reads fast flow off the axes (0.59× the truth at 13 px/frame 10–60° past an
+        axis, modulo 90°, extended model, 320×240), and the search without climbs (0, as before)
         stopped short of it (README, "The search's reach"). A frame whose best coarse
         candidate is not in the fastest row is searched exactly as without climbs.
     """
@@ -577,7 +578,7 @@ _PAD = 160
 #: best candidate is in its fastest row it is centred there and searched again, at most
 #: ``SummaryOptions.search_climbs`` times (2: its rows then reach 3.9× the guess instead
 #: of 1.57×), because the guess under-reads fast flow off the axes (extended model,
-#: 320×240, flights 10–60° off an axis: median guess / true speed 0.71 at 9 px/frame, 0.59
+#: 320×240, flights 10–60° past an axis, modulo 90°: median guess / true speed 0.71 at 9 px/frame, 0.59
 #: at 13; 0.91–0.99 along the axes) and a search that stops at 1.57× the guess cannot
 #: reach the truth there. The finer levels are refined by a parabola through the best
 #: point and its neighbours. Each level takes the rows' β at its centre, so the fine level
