@@ -29,8 +29,8 @@ Method
    independent, and a texture's few strong edge orientations would otherwise dominate),
    searched coarse-to-fine on a polar grid (log speed × direction) around the IoC guess:
    7×7 candidates over ±0.45 in log speed and ±24° (re-centred on the best candidate while
-   it is in the fastest row, at most ``search_climbs`` = 2 times: the guess under-reads
-   fast flow off the axes, see ``_SEARCH_LEVELS``), then 7×7 over ±0.12 and ±4.5°, then the vertex of a parabola
+   it is in the fastest row or the outermost directions, at most ``search_climbs`` = 2
+   times: the guess under-reads fast flow off the axes, see ``_SEARCH_LEVELS``), then 7×7 over ±0.12 and ±4.5°, then the vertex of a parabola
    through the best candidate and its neighbours. Each row's β is taken at the centre
    direction of a level, which pulls a level's answer towards its centre; so the fine
    level runs a second time, centred on the first one's answer with
@@ -415,13 +415,14 @@ class SummaryOptions:
         grids gain most from 0 to 5; above 0 the edge table, which natural ground is
         closer to, keeps the benefit of the doubt.
     search_climbs : int
-        How often the likelihood search's coarse level (±0.45 in log speed around the IoC
-        guess) is centred on its fastest row and searched again while its best candidate
-        lies there (0 to 8; 2: its rows reach 3.9× the guess instead of 1.57×). The guess
-        under-reads fast flow off the axes (0.59× the truth at 13 px/frame 10–60° past an
-        axis, modulo 90°, extended model, 320×240), and the search without climbs (0, as before)
-        stopped short of it (README, "The search's reach"). A frame whose best coarse
-        candidate is not in the fastest row is searched exactly as without climbs.
+        How often the likelihood search's coarse level (±0.45 in log speed and ±24° around
+        the IoC guess) is centred on its best candidate and searched again while that lies
+        on its edge: in its fastest row or its outermost directions (0 to 8; 2: its rows
+        reach 3.9× the guess instead of 1.57×). The guess under-reads fast flow off the
+        axes (0.59× the truth at 13 px/frame 10–60° past an axis, modulo 90°, extended
+        model, 320×240), and the search without climbs (0, as before) stopped short of it
+        (README, "The search's reach"). A frame whose best coarse candidate is inside the
+        grid is searched exactly as without climbs.
     """
 
     min_textured: float = 0.01
@@ -575,12 +576,15 @@ _DIR_STEP = 2.0 * math.pi / _DIRECTIONS
 _PAD = 160
 #: Coarse-to-fine search: (± log-speed span, direction step in _DIRECTIONS units, points
 #: per axis). Level 0 spans ±0.45 in log speed and ±24° around the IoC guess; while its
-#: best candidate is in its fastest row it is centred there and searched again, at most
-#: ``SummaryOptions.search_climbs`` times (2: its rows then reach 3.9× the guess instead
-#: of 1.57×), because the guess under-reads fast flow off the axes (extended model,
-#: 320×240, flights 10–60° past an axis, modulo 90°: median guess / true speed 0.71 at 9 px/frame, 0.59
-#: at 13; 0.91–0.99 along the axes) and a search that stops at 1.57× the guess cannot
-#: reach the truth there. The finer levels are refined by a parabola through the best
+#: best candidate is on its edge — in its fastest row or its outermost directions — it is
+#: centred there and searched again, at most ``SummaryOptions.search_climbs`` times (2:
+#: its rows then reach 3.9× the guess instead of 1.57×, its directions ±72°), because
+#: the guess under-reads fast flow off the axes (extended model, 320×240, flights 10–60°
+#: past an axis, modulo 90°: median guess / true speed 0.71 at 9 px/frame, 0.59 at 13;
+#: 0.91–0.99 along the axes) and a search that stops at 1.57× the guess cannot reach the
+#: truth there; the extended model's guess (from its channels without their gradient
+#: classes) is also crude in direction at 9–11 px/frame. The slowest row is no edge:
+#: climbing there too changed no figure of the evaluation sets. The finer levels are refined by a parabola through the best
 #: point and its neighbours. Each level takes the rows' β at its centre, so the fine level
 #: runs twice: the second time centred on (and with β from) the first one's answer, which
 #: removes most of the pull towards the coarse level's β (extended model, random
@@ -1061,9 +1065,10 @@ def _likelihood_fit(model: _LikelihoodModel, curves, U0: float, V0: float, climb
         best = int(np.argmax(L))
         bi, bj = divmod(best, L.shape[1])
         for _ in range(climbs if level_index == 0 else 0):
-            if bi < L.shape[0] - 1:
+            if bi < L.shape[0] - 1 and 0 < bj < L.shape[1] - 1:
                 break
-            # the best is the fastest row: the flow may lie beyond it (the guess reads low)
+            # the best is on the grid's edge, in its fastest row (the guess reads low) or
+            # outermost directions: the flow may lie beyond it
             log_s += ls[bi]
             d = (d + int(doff[bj])) % _DIRECTIONS
             L = _loglik_grid(model, curves, log_s, d, level)
