@@ -176,6 +176,46 @@ def test_likelihood_beats_ioc_on_model_histograms_off_axis():
     assert err_ml < 0.5 * err_ioc
 
 
+@pytest.mark.parametrize("guess_scale, guess_turn_deg", [(0.3, 0.0), (1.0, 45.0), (1.0, -45.0)])
+def test_the_search_climbs_to_a_flow_beyond_its_coarse_grid(guess_scale, guess_turn_deg):
+    """The likelihood search's coarse level spans ±0.45 in log speed and ±24° around its
+    start. Started at 0.3× the speed (its fastest row: 0.47×) or 45° off, it climbs to the
+    flow the detections were drawn at; without climbs (``search_climbs=0``, the former
+    search) it stops near the grid's edge."""
+    import emdflow.summary as summary
+
+    flow = (8.0, 4.0)
+    field = _field(model_histogram(flow, seed=4))
+    opts = SummaryOptions()
+    model = summary._model_of(field, opts)
+    curves = summary._fitted_curves(model, field.histogram, None, opts)[0]
+    turn = math.radians(guess_turn_deg)
+    c, s = math.cos(turn), math.sin(turn)
+    guess = (guess_scale * (c * flow[0] - s * flow[1]), guess_scale * (s * flow[0] + c * flow[1]))
+    speed, angle = math.hypot(*flow), math.atan2(flow[1], flow[0])
+
+    def errors(climbs):
+        U, V = summary._likelihood_fit(model, curves, *guess, climbs)[:2]
+        off = math.degrees(math.atan2(V, U) - angle)
+        return abs(math.hypot(U, V) / speed - 1.0), abs((off + 180.0) % 360.0 - 180.0)
+
+    assert errors(opts.search_climbs)[0] < 0.05 and errors(opts.search_climbs)[1] < 2.0
+    stuck = errors(0)
+    assert stuck[0] > 0.3 if guess_scale < 1.0 else stuck[1] > 10.0
+
+
+def test_a_search_inside_its_coarse_grid_does_not_climb():
+    """Started near the flow, the coarse level's best is inside its grid: the answer and
+    its log-likelihood are those of the search without climbs, bit for bit."""
+    import emdflow.summary as summary
+
+    field = _field(model_histogram((8.0, 4.0), seed=4))
+    opts = SummaryOptions()
+    model = summary._model_of(field, opts)
+    curves = summary._fitted_curves(model, field.histogram, None, opts)[0]
+    assert summary._likelihood_fit(model, curves, 7.0, 4.5, 2) == summary._likelihood_fit(model, curves, 7.0, 4.5, 0)
+
+
 def test_quality_falls_when_evidence_is_noisy():
     flow = (-2.1, 5.5)
     clean = summarize(_field(model_histogram(flow, per_row=150, seed=1)))
