@@ -30,8 +30,9 @@ Method
    searched coarse-to-fine on a polar grid (log speed × direction) around the IoC guess:
    7×7 candidates over ±0.45 in log speed and ±24° (re-centred on the best candidate while
    it is in the fastest row or the outermost directions, at most ``search_climbs`` = 2
-   times: the guess under-reads fast flow off the axes, see ``_SEARCH_LEVELS``), then 7×7 over ±0.12 and ±4.5°, then the vertex of a parabola
-   through the best candidate and its neighbours. Each row's β is taken at the centre
+   times: the guess under-reads fast flow off the axes, see ``_SEARCH_LEVELS``), then 7×7
+   over ±0.12 and ±4.5°, then the vertex of a parabola through the best candidate and its
+   neighbours. Each row's β is taken at the centre
    direction of a level, which pulls a level's answer towards its centre; so the fine
    level runs a second time, centred on the first one's answer with
    β from there (that pass alone takes the extended model from 2.37° to 2.22° median
@@ -583,9 +584,11 @@ _PAD = 160
 #: past an axis, modulo 90°: median guess / true speed 0.71 at 9 px/frame, 0.59 at 13;
 #: 0.91–0.99 along the axes) and a search that stops at 1.57× the guess cannot reach the
 #: truth there; the extended model's guess (from its channels without their gradient
-#: classes) is also crude in direction at 9–11 px/frame. The slowest row is no edge:
-#: climbing there too changed no figure of the evaluation sets. The finer levels are refined by a parabola through the best
-#: point and its neighbours. Each level takes the rows' β at its centre, so the fine level
+#: classes) is also crude in direction at 9–11 px/frame. The slowest row's inner cells are
+#: no edge (climbing from them too changed no figure of five evaluation sets; its corners,
+#: in the outermost directions, do climb, so the rows can also reach down to 0.26× the
+#: guess). The finer levels are refined by a parabola through the best point and its
+#: neighbours. Each level takes the rows' β at its centre, so the fine level
 #: runs twice: the second time centred on (and with β from) the first one's answer, which
 #: removes most of the pull towards the coarse level's β (extended model, random
 #: directions: 2.37° → 2.22°).
@@ -1055,7 +1058,8 @@ def _fitted_curves(model: _LikelihoodModel, full: np.ndarray, summed: np.ndarray
 def _likelihood_fit(model: _LikelihoodModel, curves, U0: float, V0: float, climbs: int):
     """Coarse-to-fine polar search; returns (U, V, σ of log-speed, σ of direction, the
     log-likelihood at the final level's best grid point). ``climbs``: how often the coarse
-    level may move up to its fastest row (``SummaryOptions.search_climbs``)."""
+    level may be re-centred on its best candidate while that lies in its fastest row or
+    outermost directions (``SummaryOptions.search_climbs``)."""
     log_s, d = _polar(model, U0, V0)
     sig_s = sig_a = math.inf
     last = len(model.levels) - 1

@@ -188,7 +188,9 @@ def test_the_search_climbs_to_a_flow_beyond_its_coarse_grid(guess_scale, guess_t
     field = _field(model_histogram(flow, seed=4))
     opts = SummaryOptions()
     model = summary._model_of(field, opts)
-    curves = summary._fitted_curves(model, field.histogram, None, opts)[0]
+    fitted = summary._fitted_curves(model, field.histogram, None, opts)
+    assert fitted is not None
+    curves = fitted[0]
     turn = math.radians(guess_turn_deg)
     c, s = math.cos(turn), math.sin(turn)
     guess = (guess_scale * (c * flow[0] - s * flow[1]), guess_scale * (s * flow[0] + c * flow[1]))
@@ -199,21 +201,29 @@ def test_the_search_climbs_to_a_flow_beyond_its_coarse_grid(guess_scale, guess_t
         off = math.degrees(math.atan2(V, U) - angle)
         return abs(math.hypot(U, V) / speed - 1.0), abs((off + 180.0) % 360.0 - 180.0)
 
-    assert errors(opts.search_climbs)[0] < 0.05 and errors(opts.search_climbs)[1] < 2.0
+    speed_error, direction_error = errors(opts.search_climbs)
+    assert speed_error < 0.05 and direction_error < 2.0
     stuck = errors(0)
-    assert stuck[0] > 0.3 if guess_scale < 1.0 else stuck[1] > 10.0
+    assert (stuck[0] > 0.3) if guess_scale < 1.0 else (stuck[1] > 10.0)
 
 
-def test_a_search_inside_its_coarse_grid_does_not_climb():
-    """Started near the flow, the coarse level's best is inside its grid: the answer and
-    its log-likelihood are those of the search without climbs, bit for bit."""
+@pytest.mark.parametrize("guess", [(7.0, 4.5), (24.0, 12.0)])
+def test_a_search_whose_coarse_best_is_inside_its_grid_does_not_climb(guess, monkeypatch):
+    """Started near the flow, or at 3× its speed (the best then lies inside the slowest
+    row, which is no edge), the coarse level searches one grid, and the answer and its
+    log-likelihood are those of the search without climbs, bit for bit."""
     import emdflow.summary as summary
 
     field = _field(model_histogram((8.0, 4.0), seed=4))
     opts = SummaryOptions()
     model = summary._model_of(field, opts)
     curves = summary._fitted_curves(model, field.histogram, None, opts)[0]
-    assert summary._likelihood_fit(model, curves, 7.0, 4.5, 2) == summary._likelihood_fit(model, curves, 7.0, 4.5, 0)
+    grids = []
+    grid = summary._loglik_grid
+    monkeypatch.setattr(summary, "_loglik_grid", lambda *args: grids.append(1) or grid(*args))
+    climbing = summary._likelihood_fit(model, curves, *guess, 2)
+    assert len(grids) == len(model.levels)  # one grid per level: no climb
+    assert climbing == summary._likelihood_fit(model, curves, *guess, 0)
 
 
 def test_quality_falls_when_evidence_is_noisy():
