@@ -176,6 +176,19 @@ def test_likelihood_beats_ioc_on_model_histograms_off_axis():
     assert err_ml < 0.5 * err_ioc
 
 
+def _search_inputs(flow, seed=4):
+    """The paper table's likelihood model and a frame's curves for a histogram drawn from
+    the table at ``flow``: what ``summary._likelihood_fit`` searches."""
+    import emdflow.summary as summary
+
+    field = _field(model_histogram(flow, seed=seed))
+    opts = SummaryOptions()
+    model = summary._model_of(field, opts)
+    fitted = summary._fitted_curves(model, field.histogram, None, opts)
+    assert fitted is not None
+    return model, fitted[0]
+
+
 @pytest.mark.parametrize("guess_scale, guess_turn_deg", [(0.3, 0.0), (1.0, 45.0), (1.0, -45.0)])
 def test_the_search_climbs_to_a_flow_beyond_its_coarse_grid(guess_scale, guess_turn_deg):
     """The likelihood search's coarse level spans ±0.45 in log speed and ±24° around its
@@ -185,12 +198,7 @@ def test_the_search_climbs_to_a_flow_beyond_its_coarse_grid(guess_scale, guess_t
     import emdflow.summary as summary
 
     flow = (8.0, 4.0)
-    field = _field(model_histogram(flow, seed=4))
-    opts = SummaryOptions()
-    model = summary._model_of(field, opts)
-    fitted = summary._fitted_curves(model, field.histogram, None, opts)
-    assert fitted is not None
-    curves = fitted[0]
+    model, curves = _search_inputs(flow)
     turn = math.radians(guess_turn_deg)
     c, s = math.cos(turn), math.sin(turn)
     guess = (guess_scale * (c * flow[0] - s * flow[1]), guess_scale * (s * flow[0] + c * flow[1]))
@@ -201,7 +209,7 @@ def test_the_search_climbs_to_a_flow_beyond_its_coarse_grid(guess_scale, guess_t
         off = math.degrees(math.atan2(V, U) - angle)
         return abs(math.hypot(U, V) / speed - 1.0), abs((off + 180.0) % 360.0 - 180.0)
 
-    speed_error, direction_error = errors(opts.search_climbs)
+    speed_error, direction_error = errors(SummaryOptions().search_climbs)
     assert speed_error < 0.05 and direction_error < 2.0
     stuck = errors(0)
     assert (stuck[0] > 0.3) if guess_scale < 1.0 else (stuck[1] > 10.0)
@@ -214,10 +222,7 @@ def test_a_search_whose_coarse_best_is_inside_its_grid_does_not_climb(guess, mon
     log-likelihood are those of the search without climbs, bit for bit."""
     import emdflow.summary as summary
 
-    field = _field(model_histogram((8.0, 4.0), seed=4))
-    opts = SummaryOptions()
-    model = summary._model_of(field, opts)
-    curves = summary._fitted_curves(model, field.histogram, None, opts)[0]
+    model, curves = _search_inputs((8.0, 4.0))
     grids = []
     grid = summary._loglik_grid
     monkeypatch.setattr(summary, "_loglik_grid", lambda *args: grids.append(1) or grid(*args))
