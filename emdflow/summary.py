@@ -32,13 +32,12 @@ Method
    it is in the fastest row or the outermost directions, at most ``search_climbs`` = 2
    times: the guess under-reads fast flow off the axes, see ``_SEARCH_LEVELS``), then 7×7
    over ±0.12 and ±4.5°, then the vertex of a parabola through the best candidate and its
-   neighbours. Each row's β is taken at the centre
-   direction of a level, which pulls a level's answer towards its centre; so the fine
-   level runs a second time, centred on the first one's answer with
-   β from there (that pass alone takes the extended model from 2.37° to 2.22° median
-   direction error on random directions, and the paper's from 2.42° to 2.37°; evaluating
-   β at every candidate instead measured worse, 2.64°, as did a table without the β
-   dimension, 2.74°). Directions are multiples of 0.25° and every
+   neighbours. Each row's β is taken at the centre direction of a level, which pulls a
+   level's answer towards its centre; so the fine level runs a second time, centred on
+   the first one's answer with β from there (that pass alone takes the extended model
+   from 2.37° to 2.22° median direction error on random directions, and the paper's from
+   2.42° to 2.37°; evaluating β at every candidate instead measured worse, 2.64°, as did
+   a table without the β dimension, 2.74°). Directions are multiples of 0.25° and every
    row's geometry (|c| per unit speed, its sign, the β node) is tabulated once per
    direction; the per-row likelihood curves are computed once per frame (one batched
    matrix product), so a level costs one (candidates × rows) interpolation. Rows whose
@@ -588,10 +587,10 @@ _PAD = 160
 #: no edge (climbing from them too changed no figure of five evaluation sets; its corners,
 #: in the outermost directions, do climb, so the rows can also reach down to 0.26× the
 #: guess). The finer levels are refined by a parabola through the best point and its
-#: neighbours. Each level takes the rows' β at its centre, so the fine level
-#: runs twice: the second time centred on (and with β from) the first one's answer, which
-#: removes most of the pull towards the coarse level's β (extended model, random
-#: directions: 2.37° → 2.22°).
+#: neighbours. Each level takes the rows' β at its centre, so the fine level runs twice:
+#: the second time centred on (and with β from) the first one's answer, which removes
+#: most of the pull towards the coarse level's β (extended model, random directions:
+#: 2.37° → 2.22°).
 _SEARCH_LEVELS = ((0.45, 32, 7), (0.12, 6, 7), (0.12, 6, 7))
 #: Level whose grid gives the curvature of the log-likelihood (expected error).
 _CURVATURE_LEVEL = 1
