@@ -45,17 +45,9 @@ def _add_video_io_arguments(p: argparse.ArgumentParser, codec_help: str) -> None
 def _open_input(args):
     """``(frames, fps)`` of INPUT after the options ``flow`` and ``render`` share are checked
     (a bad ``--fps`` or ``--size``, an output that would overwrite the input: ToolError 2)."""
-    from emdflow.tools import ToolError, check_count, check_positive, refuse_overwrite
-    from emdflow.tools.video_io import open_frames, parse_size
+    from emdflow.tools import open_input
 
-    check_positive("--fps", args.fps, "frames/s")
-    check_count("--max-frames", args.max_frames)
-    try:
-        size = parse_size(args.size) if args.size else None
-    except ValueError as e:
-        raise ToolError(f"--size: {e}", 2) from None
-    refuse_overwrite(args.input, args.output)
-    source = open_frames(args.input, size=size, fps=args.fps, max_frames=args.max_frames)
+    source = open_input(args)
     return source, source.fps or 30.0
 
 

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import logging
 import math
-import numbers
 import os
 import struct
 import threading
@@ -25,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .params import ORIENTATION_BINS, EngineParams
+from .params import ORIENTATION_BINS, EngineParams, _is_whole
 from .reference import POSITION_BINS, STAT_CONTRAST, STAT_FIRST_CHANGED
 
 __all__ = ["OpenCLEngine", "PackedCodes", "KernelBuildError", "list_devices", "kernel_source"]
@@ -110,7 +109,7 @@ def _device_choice(device):
     choice is an index (an int, numpy's too, or a string of digits) or a name (a str);
     anything else (True, 1.5, a list) is a TypeError rather than a guess."""
     if device is not None:
-        if isinstance(device, numbers.Integral) and not isinstance(device, bool):
+        if _is_whole(device):
             return int(device)
         if not isinstance(device, str):
             raise TypeError(f"device={device!r}: expected an index (int) or part of a device name (str)")

@@ -239,7 +239,7 @@ from pathlib import Path
 import numpy as np
 
 from .field import FlowField
-from .params import GRADIENT_CLASS_STEPS, ORIENTATION_BINS, EngineParams
+from .params import GRADIENT_CLASS_STEPS, ORIENTATION_BINS, EngineParams, _is_real, _is_whole
 from .reference import STAT_CONTRAST
 
 __all__ = ["FlowSummary", "summarize", "SummaryOptions", "calibration_for", "prepare"]
@@ -468,14 +468,13 @@ class SummaryOptions:
         )
         for name, lo, lo_in, hi, hi_in in ranges:
             value = getattr(self, name)
-            ok = (isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+            ok = (_is_real(value)
                   and (value >= lo if lo_in else value > lo) and (value <= hi if hi_in else value < hi))
             if not ok:
                 raise ValueError(f"SummaryOptions({name}={value!r}): expected a number "
                                  f"{'≥' if lo_in else '>'} {lo:g}"
                                  + (f" and {'≤' if hi_in else '<'} {hi:g}" if math.isfinite(hi) else ""))
-        if not (isinstance(self.search_climbs, numbers.Integral) and not isinstance(self.search_climbs, bool)
-                and 0 <= self.search_climbs <= 8):
+        if not (_is_whole(self.search_climbs) and 0 <= self.search_climbs <= 8):
             raise ValueError(f"SummaryOptions(search_climbs={self.search_climbs!r}): expected a whole number "
                              "from 0 to 8")
         if self.top_speed is not None and not (isinstance(self.top_speed, numbers.Real)
@@ -1063,20 +1062,18 @@ def _likelihood_fit(model: _LikelihoodModel, curves, U0: float, V0: float, climb
     sig_s = sig_a = math.inf
     last = len(model.levels) - 1
     for level_index, level in enumerate(model.levels):
-        L = _loglik_grid(model, curves, log_s, d, level)
         ls, doff = level[0], level[1]
-        best = int(np.argmax(L))
-        bi, bj = divmod(best, L.shape[1])
-        for _ in range(climbs if level_index == 0 else 0):
-            if bi < L.shape[0] - 1 and 0 < bj < L.shape[1] - 1:
+        climbs_left = climbs if level_index == 0 else 0
+        while True:
+            L = _loglik_grid(model, curves, log_s, d, level)
+            bi, bj = divmod(int(np.argmax(L)), L.shape[1])
+            if not climbs_left or (bi < L.shape[0] - 1 and 0 < bj < L.shape[1] - 1):
                 break
             # the best is on the grid's edge, in its fastest row (the guess reads low) or
             # outermost directions: the flow may lie beyond it
+            climbs_left -= 1
             log_s += ls[bi]
             d = (d + int(doff[bj])) % _DIRECTIONS
-            L = _loglik_grid(model, curves, log_s, d, level)
-            best = int(np.argmax(L))
-            bi, bj = divmod(best, L.shape[1])
         if level_index == _CURVATURE_LEVEL:
             weights = model.parabola[level_index]
             sig_s = _curvature_sigma(weights, L[:, bj], ls[1] - ls[0])

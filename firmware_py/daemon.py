@@ -283,7 +283,7 @@ class SourceKeeper:
         self._delay = backoff_s
         self._next_try = 0.0
         self._opened_once = False
-        self._first_frame_at: float | None = None  # clock() at the current source's first frame
+        self._first_frame_at: float | None = None  # clock() at the current source's first frame (while backed off)
         self._lock = threading.Lock()
         #: called with each source the keeper opens itself (a camera absent at start-up,
         #: a reopen): the daemon checks what the camera delivers
@@ -381,11 +381,12 @@ class SourceKeeper:
                 self.stats.stage("capture", max(0, done - frame.capture_host_us))
             else:
                 self.stats.stage("capture", max(0, done - t0 - getattr(source, "waited_us", 0)))
-            now = self._clock()
-            if self._first_frame_at is None:
-                self._first_frame_at = now
-            elif now - self._first_frame_at >= self.steady_s and self._delay != self.backoff_s:
-                self._delay = self.backoff_s  # delivering steadily: a new failure starts afresh
+            if self._delay != self.backoff_s:  # (a back-off raised by failures: is it over?)
+                now = self._clock()
+                if self._first_frame_at is None:
+                    self._first_frame_at = now
+                elif now - self._first_frame_at >= self.steady_s:
+                    self._delay = self.backoff_s  # delivering steadily: a new failure starts afresh
             return frame
 
     def close(self) -> None:

@@ -413,12 +413,11 @@ LOW_RATES = {
 
 @pytest.mark.parametrize("interval_us", [10_000, 111_111], ids=["100fps", "9fps"])
 @pytest.mark.parametrize("case", list(LOW_RATES))
-def test_a_low_message_rate_reports_often_enough_within_the_span_cap(tmp_path, case, interval_us):
+def test_a_low_message_rate_reports_often_enough_within_the_span_cap(peer, case, interval_us):
     """A 100 fps and a 9 fps camera on a slow line: a report every <= 180 ms, each spanning
     <= 0.45 s, all with the true rate. (At 7/s a 9 fps camera's reports used to wait for the
     frame after 1/7 s: 222 ms apart.)"""
     autopilot, settings = LOW_RATES[case]
-    peer = PtyPeer(tmp_path / "ttyFC")
     link = open_link(LinkConfig(port=peer.path, autopilot=autopilot, focal_length_px=F, **settings))
     fc = FlightController(peer, autopilot)
     start = host_us()
@@ -427,7 +426,6 @@ def test_a_low_message_rate_reports_often_enough_within_the_span_cap(tmp_path, c
         drive(link, fc, frames, start_us=start, end_us=frames[-1][0] + STEP_US)
     finally:
         link.close()
-        peer.close()
     assert link.message_rate_hz == settings.get("message_rate_hz", {"ardupilot": 10, "px4": 9}[autopilot])
     first = next(i for i, m in enumerate(fc.messages) if m["quality"] > 0)
     reports = fc.messages[first:]    # after the quality-0 start marker (and a keep-alive before it)
@@ -470,14 +468,13 @@ FLOOR_LINKS = {
 
 @pytest.mark.parametrize("fps", list(FRAMES_PER_REPORT))
 @pytest.mark.parametrize("case", list(FLOOR_LINKS))
-def test_reports_at_the_floor_are_at_most_180ms_apart(tmp_path, case, fps):
+def test_reports_at_the_floor_are_at_most_180ms_apart(peer, tmp_path, case, fps):
     """At the fewest reports a second (the 7/s floor, the budget of a slow line), steady frames
     at 7.5-14 fps are reported at most 180 ms apart, as the autopilot receives them and as
     the message log records their spans: at 7/s, frames 90-114 ms apart used to wait for the
     frame after 1/7 s and go out 200-227 ms apart (ArduPilot's EKF3 and INAV want < 200 ms).
     A fast camera gets no more reports than the rate asks for (100 fps at 7/s: every 150 ms)."""
     autopilot, settings, rate = FLOOR_LINKS[case]
-    peer = PtyPeer(tmp_path / "ttyFC")
     log_path = tmp_path / "messages.jsonl"
     link = open_link(LinkConfig(port=peer.path, autopilot=autopilot, focal_length_px=F,
                                 message_log=str(log_path), **settings))
@@ -489,7 +486,6 @@ def test_reports_at_the_floor_are_at_most_180ms_apart(tmp_path, case, fps):
         drive(link, fc, frames, start_us=frames[0][0], end_us=frames[-1][0] + STEP_US)
     finally:
         link.close()
-        peer.close()
     assert link.message_rate_hz == rate
     per_report_us = FRAMES_PER_REPORT[fps][rate] * interval_us
     assert fc.messages[0]["quality"] == 0 and fc.messages[0]["at"] == frames[0][0]   # the start marker
@@ -521,19 +517,17 @@ PENDING_FRAMES = 3
 AFTER_US = [FAST_US] * 30
 
 
-def _link_at_the_floor(tmp_path, autopilot):
+def _link_at_the_floor(peer, tmp_path, autopilot):
     """A link at the 7 Hz floor on a fast line, its message log, and the autopilot's ears:
-    ``(peer, log_path, link, flight_controller)``."""
-    peer = PtyPeer(tmp_path / "ttyFC")
+    ``(log_path, link, flight_controller)``."""
     log_path = tmp_path / "messages.jsonl"
-    link = open_link(LinkConfig(port=peer.path, baud=921600, autopilot=autopilot, focal_length_px=F,
-                                message_rate_hz=7.0, message_log=str(log_path)))
-    return peer, log_path, link, FlightController(peer, autopilot)
+    link = make_link(peer, autopilot, message_rate_hz=7.0, message_log=str(log_path))
+    return log_path, link, FlightController(peer, autopilot)
 
 
 @pytest.mark.parametrize("autopilot", ["px4", "ardupilot", "inav"])
 @pytest.mark.parametrize("late_us", [370_000, 420_000], ids=["late-370ms", "late-420ms"])
-def test_a_late_frame_closes_the_pending_report_within_the_span_cap(tmp_path, autopilot, late_us):
+def test_a_late_frame_closes_the_pending_report_within_the_span_cap(peer, tmp_path, autopilot, late_us):
     """No report spans more than 0.45 s, however the frames jitter: a frame that would take
     the pending report past it sends that report at once, ending at the frame before, with
     quality 0, and integration restarts at the late frame. Exactly one report goes out then:
@@ -542,7 +536,7 @@ def test_a_late_frame_closes_the_pending_report_within_the_span_cap(tmp_path, au
     the ~0 s since that report). The camera stalls here, the daemon goes on: keep-alives go
     out during the wait (test_a_late_frame_after_an_engine_stall_... has none). At 30 fps
     either wait is past the gap threshold (5 frames) as well."""
-    peer, log_path, link, fc = _link_at_the_floor(tmp_path, autopilot)
+    log_path, link, fc = _link_at_the_floor(peer, tmp_path, autopilot)
     start = host_us()
     intervals = JITTER_US + [FAST_US] * FAST_BEFORE + [late_us] + AFTER_US
     frames = stream(start, intervals, engine_us=3_000, flow_px_per_s=FLOW)
@@ -550,7 +544,6 @@ def test_a_late_frame_closes_the_pending_report_within_the_span_cap(tmp_path, au
         drive(link, fc, frames, start_us=frames[0][0], end_us=frames[-1][0] + STEP_US)
     finally:
         link.close()
-        peer.close()
     spans = logged_spans(log_path)
     assert len(spans) == len(fc.messages) and max(spans) <= MAX_SPAN_US, spans
     if autopilot == "px4":
@@ -586,7 +579,7 @@ def test_a_late_frame_closes_the_pending_report_within_the_span_cap(tmp_path, au
 
 
 @pytest.mark.parametrize("autopilot", ["px4", "ardupilot", "inav"])
-def test_a_late_frame_after_an_engine_stall_closes_the_pending_report_with_quality_0(tmp_path, autopilot):
+def test_a_late_frame_after_an_engine_stall_closes_the_pending_report_with_quality_0(peer, tmp_path, autopilot):
     """The engine stalls: 400 ms pass with neither a submit() nor a service() call (no
     keep-alive can go out), and the next frame is the first captured after the stall. It
     closes the pending report (2 frames, 67 ms) with quality 0: the autopilot's interval for
@@ -594,7 +587,7 @@ def test_a_late_frame_after_an_engine_stall_closes_the_pending_report_with_quali
     (a seventh of the true rate), PX4 match them with 467 ms of its gyro. The reports after it
     are good from the first on, their counts starting at the late frame."""
     flow = (0.0, 100.0)     # 1 rad/s: 1 count is < 1 % of an INAV rate over 167 ms
-    peer, log_path, link, fc = _link_at_the_floor(tmp_path, autopilot)
+    log_path, link, fc = _link_at_the_floor(peer, tmp_path, autopilot)
     start = host_us()
     stall_us, stall_after = 400_000, 22      # frames 1-20: 4 reports; then 2 frames pending
     intervals = [FAST_US] * stall_after + [stall_us] + [FAST_US] * 30
@@ -605,7 +598,6 @@ def test_a_late_frame_after_an_engine_stall_closes_the_pending_report_with_quali
               stall=(frames[stall_after][0], late_submit))
     finally:
         link.close()
-        peer.close()
     assert link.stats["blind_reports"] == 0     # nothing went out during the stall
     spans = logged_spans(log_path)
     assert len(spans) == len(fc.messages)

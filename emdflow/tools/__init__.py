@@ -125,6 +125,22 @@ def refuse_overwrite(input_path, output_path) -> None:
         raise ToolError(f"{output_path}: output would overwrite the input", 2)
 
 
+def open_input(args):
+    """The frame source of ``args.input`` after the input options the tools share are
+    checked (``--fps``, ``--max-frames``, ``--size``, and ``args.output`` not the input
+    itself: ToolError 2), opened with them (:func:`emdflow.tools.video_io.open_frames`)."""
+    from emdflow.tools.video_io import open_frames, parse_size
+
+    check_positive("--fps", args.fps, "frames/s")
+    check_count("--max-frames", args.max_frames)
+    try:
+        size = parse_size(args.size) if args.size else None
+    except ValueError as e:
+        raise ToolError(f"--size: {e}", 2) from None
+    refuse_overwrite(args.input, args.output)
+    return open_frames(args.input, size=size, fps=args.fps, max_frames=args.max_frames)
+
+
 def interp_weights(x, nodes):
     """Lower node index ``i`` and the weight of node ``i + 1`` of each ``x`` on the increasing
     ``nodes`` (linear soft binning, clamped to the nodes)."""

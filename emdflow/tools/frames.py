@@ -83,18 +83,10 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     """Run ``emdflow frames`` with parsed arguments; returns the exit code."""
     from emdflow import summarize
-    from emdflow.tools import ToolError, check_count, check_positive, make_estimator, progress_bar, refuse_overwrite
-    from emdflow.tools.video_io import open_frames, parse_size
+    from emdflow.tools import ToolError, check_positive, make_estimator, open_input, progress_bar
 
-    check_positive("--fps", args.fps, "frames/s")
     check_positive("--focal-length-px", args.focal_length_px, "px")
-    check_count("--max-frames", args.max_frames)
-    try:
-        size = parse_size(args.size) if args.size else None
-    except ValueError as e:
-        raise ToolError(f"--size: {e}", 2) from None
-    refuse_overwrite(args.input, args.output)
-    source = open_frames(args.input, size=size, fps=args.fps, max_frames=args.max_frames)
+    source = open_input(args)
     if args.focal_length_px is not None and not source.fps:
         raise ToolError(f"{args.input}: no frame rate known; rates need --fps", 2)
     est = make_estimator(args, source.width, source.height)

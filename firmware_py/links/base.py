@@ -365,7 +365,8 @@ class FlowLink:
         return 100.0
 
     def _reserved_bytes_per_s(self) -> float:
-        return 0.0
+        """Bytes/s sent next to the reports: :meth:`line_need`'s always-sent traffic."""
+        return self.line_need(self.config)[2]
 
     def _rate_ceiling_hz(self) -> float:
         """Most reports per second the minimum span lets out, whatever the configured rate."""
@@ -389,22 +390,19 @@ class FlowLink:
         budget_rate = choose_message_rate(baud=cfg.baud, bytes_per_message=self._bytes_per_report(),
                                           cap_hz=self._default_rate_cap(),
                                           reserved_bytes_per_s=self._reserved_bytes_per_s())
+        rate = budget_rate if cfg.message_rate_hz is None else float(cfg.message_rate_hz)
+        load = (rate * self._bytes_per_report() + self._reserved_bytes_per_s()) / (cfg.baud / 10.0)
         if cfg.message_rate_hz is None:
-            rate = budget_rate
-        else:
-            rate = float(cfg.message_rate_hz)
-            load = (rate * self._bytes_per_report() + self._reserved_bytes_per_s()) / (cfg.baud / 10.0)
-            if load > BUSY_FRACTION:
-                log.warning("%s on %s: %.0f Hz needs %.0f %% of %d baud (budget %.0f %%): expect drops; "
-                            "%.0f Hz would fit", self.protocol, cfg.port, rate, 100 * load, cfg.baud,
-                            100 * BUSY_FRACTION, budget_rate)
-        if rate < 10 and cfg.message_rate_hz is None:  # (a configured rate is a choice, not a shortfall)
-            load = (rate * self._bytes_per_report() + self._reserved_bytes_per_s()) / (cfg.baud / 10.0)
-            over = (f" ({100 * load:.0f} % of the line, over the {100 * BUSY_FRACTION:.0f} % budget: the "
-                    f"fewest that keep ArduPilot's EKF3 and INAV using the flow, which need a sample "
-                    f"every < 200 ms)" if load > BUSY_FRACTION else "")
-            log.warning("%s on %s: only %.0f flow messages/s fit in %d baud%s; raise the baud rate",
-                        self.protocol, cfg.port, rate, cfg.baud, over)
+            if rate < 10:  # (a configured rate is a choice, not a shortfall)
+                over = (f" ({100 * load:.0f} % of the line, over the {100 * BUSY_FRACTION:.0f} % budget: the "
+                        f"fewest that keep ArduPilot's EKF3 and INAV using the flow, which need a sample "
+                        f"every < 200 ms)" if load > BUSY_FRACTION else "")
+                log.warning("%s on %s: only %.0f flow messages/s fit in %d baud%s; raise the baud rate",
+                            self.protocol, cfg.port, rate, cfg.baud, over)
+        elif load > BUSY_FRACTION:
+            log.warning("%s on %s: %.0f Hz needs %.0f %% of %d baud (budget %.0f %%): expect drops; "
+                        "%.0f Hz would fit", self.protocol, cfg.port, rate, 100 * load, cfg.baud,
+                        100 * BUSY_FRACTION, budget_rate)
         log.info("%s on %s: up to %.0f flow messages/s (%d bytes each) at %d baud", self.protocol, cfg.port,
                  min(rate, self._rate_ceiling_hz()), self._bytes_per_report(), cfg.baud)
         return rate
@@ -499,6 +497,8 @@ class FlowLink:
             self._emit_pending(capture_host_us=self._last_capture_host_us, now=now, quality0=True)
         accepted = integ.add_frame(timestamp_us=sample.timestamp_us, flow_x_px=sample.flow_x,
                                    flow_y_px=sample.flow_y, quality=sample.quality)
+        if late or not accepted:
+            self.stats["integration_restarts"] = integ.restart_count
         if late:
             # The report just sent starts the autopilot's next interval now, at this frame:
             # the frame's own flow began before it (sent too, INAV would divide it by ~0 s;
@@ -507,13 +507,11 @@ class FlowLink:
             # once, gap or not); only the carried remainders are left to forget.
             if accepted:
                 integ.restart(int(sample.timestamp_us))
-            self.stats["integration_restarts"] = integ.restart_count
             self._reset_carry()
         elif not accepted:
             # The first frame or a restart (the only time restart_count changes). The
             # autopilot's next interval must begin at this frame as well; the quality-0
             # marker also forgets the protocol's carried remainders (_emit).
-            self.stats["integration_restarts"] = integ.restart_count
             self._keepalive_in_interval = False
             marker = self._quality0_interval(end_us=int(sample.timestamp_us),
                                              span_us=self._quality0_span_us(now))
@@ -539,12 +537,10 @@ class FlowLink:
     def _emit_pending(self, *, capture_host_us: int | None, now: int, quality0: bool = False) -> None:
         """Send the pending interval as a report (``quality0``: with quality 0)."""
         interval = self.integrator.take()
-        if quality0:
+        # (after a keep-alive the autopilot's interval began there, these counts earlier)
+        if quality0 or self._keepalive_in_interval:
             interval = replace(interval, quality=0)
-        if self._keepalive_in_interval:
-            # The autopilot's interval began at the keep-alive, these counts earlier.
-            interval = replace(interval, quality=0)
-            self._keepalive_in_interval = False
+        self._keepalive_in_interval = False
         self._emit(interval, capture_host_us=capture_host_us, now=now)
 
     def _note_submit(self, now: int) -> None:

@@ -150,7 +150,7 @@ class MavlinkLink(FlowLink):
 
     def _reserved_bytes_per_s(self) -> float:
         extras = WIRE_BYTES["NAMED_VALUE_FLOAT"] * EXTRA_VALUES_BUDGETED * self.extras_rate_hz
-        return WIRE_BYTES["HEARTBEAT"] * self.config.heartbeat_rate_hz + extras
+        return super()._reserved_bytes_per_s() + extras
 
     def _default_rate_cap(self) -> float:
         return PX4_SENS_FLOW_RATE_HZ if self.min_report_span_us else 100.0
@@ -167,7 +167,7 @@ class MavlinkLink(FlowLink):
         cfg = self.config
         if not cfg.extra_values:
             return 0.0
-        heartbeat = WIRE_BYTES["HEARTBEAT"] * cfg.heartbeat_rate_hz
+        heartbeat = super()._reserved_bytes_per_s()
         size = self._bytes_per_report()
         if cfg.message_rate_hz is not None:
             flow_hz = min(float(cfg.message_rate_hz), self._rate_ceiling_hz())

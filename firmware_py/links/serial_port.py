@@ -231,8 +231,8 @@ class SerialTransport:
             # Reopened but failed again before it was healthy: not a recovery, so the
             # back-off keeps doubling, and only the first repeat is a warning.
             self._backoff_us = min(self.reopen_max_us, self._backoff_us * 2)
-            up_s = (now_us - self._opened_us) / 1e6 if self._opened_us is not None else 0.0
             if self._losses == 2:
+                up_s = (now_us - self._opened_us) / 1e6 if self._opened_us is not None else 0.0
                 self._fail(f"{text} (again, {up_s:.1f} s after reopening: the port fails soon after each "
                            f"open; retrying with back-off up to {self.reopen_max_us / 1e6:.0f} s, repeats "
                            f"are logged at debug level with a summary every {self.summary_us / 1e6:.0f} s)")
