@@ -7,7 +7,9 @@ frame, four kernel launches on an in-order queue, one blocking download of one r
 buffer (flow bit planes + statistics + detection histogram; the int8 codes are unpacked
 on the host only when the dense field is read). On a CPU device the frame and result
 buffers are host memory (``_shared_buffer``): the upload is a numpy copy, the download a
-wait for the last kernel and a copy of the bit planes. Sizes and tables are compile-time
+wait for the last kernel, and the frames take ``RESULT_SLOTS`` result buffers in turn, so
+a frame's bit planes are read where the kernels wrote them (copied out only if their
+field is still alive, not decoded, when the buffer comes round again). Sizes and tables are compile-time
 constants; a program is built once per process and shape (PoCL also caches the binary on
 disk, ``POCL_CACHE_DIR``).
 """
@@ -19,6 +21,7 @@ import math
 import os
 import struct
 import threading
+import weakref
 from importlib import resources
 from pathlib import Path
 
@@ -475,13 +478,26 @@ class PackedCodes:
     index ``c + 1`` (4 bits) and of the sign, 32 pixels per word (bit j of word i =
     pixel ``32 i + j``). :meth:`decode` gives the int8 codes ``±(c + 1)`` (0 = none)."""
 
-    __slots__ = ("words", "width")
+    __slots__ = ("words", "width", "_lock", "__weakref__")
 
     def __init__(self, words: np.ndarray, width: int):
         self.words = words  # (2 axes, 5 planes, H, NW) uint32 (rows may be strided)
         self.width = width
+        # decode() and detach() exclude each other: a decode in another thread must not
+        # read memory the engine is about to overwrite
+        self._lock = threading.Lock()
+
+    def detach(self) -> None:
+        """Copy the words out of the memory they share with the engine (its result buffer,
+        which a later frame overwrites)."""
+        with self._lock:
+            self.words = self.words.copy()
 
     def decode(self) -> tuple[np.ndarray, np.ndarray]:
+        with self._lock:
+            return self._decode()
+
+    def _decode(self) -> tuple[np.ndarray, np.ndarray]:
         # 8 pixels at a time: a byte of each plane indexes a table of 8 code bytes (bit b
         # of the index at each set pixel), and the sign byte a table of 0xFF masks
         planes = self.words.astype("<u4", copy=False).view(np.uint8)  # (2, 5, H, 4 NW)
@@ -530,10 +546,19 @@ class OpenCLEngine:
         # (the last plane's last run may read a row and 16 words past its end)
         plane_tail = lay.NWP + 16
         self.planes = cl.Buffer(ctx, mf.READ_WRITE, 4 * (lay.PHEAD + 2 * lay.plane_slots * lay.plane_words + plane_tail))
-        shared = _shared_buffer(cl, ctx, self.queue, self.device, lay.result_bytes, host_writes=False)
-        #: the result buffer's memory as a host array (a CPU device), or None
-        self.result, self.result_host = shared if shared is not None else (
-            cl.Buffer(ctx, mf.READ_WRITE, lay.result_bytes), None)
+        shared = [_shared_buffer(cl, ctx, self.queue, self.device, lay.result_bytes, host_writes=False)
+                  for _ in range(self.RESULT_SLOTS)]
+        if all(slot is not None for slot in shared):
+            # frames take the result buffers in turn, and a frame's bit planes stay where
+            # the kernels wrote them (no copy per frame) until its buffer comes round
+            # again; only codes still alive and not decoded by then are copied out
+            self._results = shared
+        else:
+            self._results = [(cl.Buffer(ctx, mf.READ_WRITE, lay.result_bytes), None)]
+        #: the codes of the frame each result buffer holds (weak references), or None
+        self._result_codes = [None] * len(self._results)
+        #: the latest frame's result buffer and its memory as a host array (a CPU device), or None
+        self.result, self.result_host = self._results[0]
         #: names of the commands of one frame, in the order of ``trace`` entries (no
         #: upload / download command where the host shares the buffer's memory)
         skipped = {"upload"} if self.frame_host is not None else set()
@@ -585,6 +610,9 @@ class OpenCLEngine:
         self.t = 0
         self.theta_q = self.params.threshold_q(self.params.threshold)  # threshold of the next frame
 
+    #: result buffers the frames take in turn where the host shares their memory
+    RESULT_SLOTS = 2
+
     #: names of all the commands a frame may have (see ``stages``)
     STAGES = ("upload", "prefilter_columns", "integral_rows", "ternary_states", "velocity_detectors", "download")
 
@@ -611,6 +639,16 @@ class OpenCLEngine:
         self._set_states(7, int(self.theta_q))
         self._set_evd(5, t)
         self._set_evd(6, int(self.theta_q))
+        if len(self._results) > 1:
+            slot_index = self.t % len(self._results)
+            self.result, self.result_host = self._results[slot_index]
+            held = self._result_codes[slot_index]
+            held = held() if held is not None else None
+            if held is not None:  # a caller still holds that frame's field, not decoded
+                held.detach()
+            self._k_prefilter.set_arg(3, self.result)
+            self._k_states.set_arg(5, self.result)
+            self._k_evd.set_arg(1, self.result)
         if self.frame_host is not None:
             np.copyto(self.frame_host, frame)
             upload = ()
@@ -626,9 +664,9 @@ class OpenCLEngine:
         if self.result_host is not None:
             events[-1].wait()
             host = self.result_host
-            # the bit planes become the caller's (the next frame overwrites this memory);
-            # the statistics below are summed into new arrays anyway
-            planes = host[: 4 * lay.out_words].copy()
+            # the bit planes stay in the result buffer (detached before it is reused); the
+            # statistics below are summed into new arrays anyway
+            planes = host[: 4 * lay.out_words]
         else:
             host = np.empty(lay.result_bytes, np.uint8)
             events += (cl.enqueue_copy(q, host, self.result, is_blocking=True),)
@@ -637,12 +675,14 @@ class OpenCLEngine:
             self.trace.append(events)
         self.t += 1
         codes = PackedCodes(lay.plane_rows(planes.view(np.uint32).reshape(2, 5, lay.OUT_PLANE)), lay.W)
+        if self.result_host is not None and len(self._results) > 1:
+            self._result_codes[slot_index] = weakref.ref(codes)
         ints = host[lay.stats_offset :].view(np.int32)
         n_ch = len(lay.channels)
         # (the counters in int64 before they are added up: the contrast sum of a large
         # frame passes 2^31, each copy's share of it does not)
-        stats = _fold_copies(ints[: lay.pos_offset].reshape(lay.COUNTER_COPIES, lay.SLOT_INTS)
-                             .astype(np.int64))[: lay.n_fixed]
+        stats = ints[: lay.pos_offset].reshape(lay.COUNTER_COPIES, lay.SLOT_INTS)[:, : lay.n_fixed].sum(
+            axis=0, dtype=np.int64)
         self.last_theta_q = self.theta_q
         self.theta_q = self.params.next_threshold_q(int(stats[STAT_CONTRAST]),
                                                     self.params.contrast_samples(lay.W, lay.H))

@@ -8,6 +8,8 @@ delays, with and without the diagonal detectors' evidence, whose detections the
 histogram compares).
 """
 
+import threading
+
 import numpy as np
 import pytest
 
@@ -302,6 +304,53 @@ def test_both_transfer_paths_are_exact(monkeypatch, shared):
     assert any(a[0].any() for a in before)
     assert all(np.array_equal(a[0], k.decode()[0]) for a, k in zip(before, kept))
     assert _compare(width, height, frames) > 0
+
+
+def test_result_buffers_are_read_in_place_and_held_codes_copied_out(monkeypatch):
+    """On a CPU device the frames take the result buffers in turn: a frame's bit planes
+    are read where the kernels wrote them, not copied; codes still held when their buffer
+    comes round again are copied out first (only those), and decode to the reference's
+    codes however long they are kept. A decode in progress in another thread holds the
+    next frame back until it is done."""
+    width, height = 83, 45
+    probe = opencl_backend.OpenCLEngine(width, height, EngineParams())
+    if probe.result_host is None:
+        pytest.skip("the OpenCL device does not share host memory")
+    slots = opencl_backend.OpenCLEngine.RESULT_SLOTS
+    hosts = [host for _, host in probe._results]
+    detached = []
+    detach = opencl_backend.PackedCodes.detach
+    monkeypatch.setattr(opencl_backend.PackedCodes, "detach", lambda self: (detached.append(self), detach(self)))
+    ref = ReferenceEngine(width, height, EngineParams())
+    flight = CameraFlight("gravel", width=width, height=height, flow=(1.7, -2.2), noise_sigma=2, seed=9)
+    frames = [flight.render(t) for t in range(12)]
+    for frame in frames[:6]:  # codes dropped at once: nothing to copy out
+        assert np.shares_memory(probe.step_packed(frame)[0].words, probe.result_host)
+        ref.step(frame)
+    assert detached == []
+    kept, expected = [], []
+    for frame in frames[6:]:
+        codes = probe.step_packed(frame)[0]
+        assert np.shares_memory(codes.words, probe.result_host)
+        kept.append(codes)
+        expected.append(ref.step(frame)[:2])
+    assert detached == kept[:-slots]
+    assert not any(np.shares_memory(codes.words, host) for codes in kept[:-slots] for host in hosts)
+    assert any(u.any() for u, _ in expected)
+    for codes, (u_r, v_r) in zip(kept, expected):
+        u_o, v_o = codes.decode()
+        assert np.array_equal(u_o, u_r) and np.array_equal(v_o, v_r)
+
+    # a decode in progress (holding the codes' lock) on the buffer the next frame takes
+    held = kept[-slots]
+    finished = threading.Event()
+    with held._lock:
+        worker = threading.Thread(target=lambda: (probe.step_packed(frames[0]), finished.set()))
+        worker.start()
+        assert not finished.wait(0.5)
+    worker.join(30)
+    assert finished.is_set() and held in detached
+    assert all(np.array_equal(a, b) for a, b in zip(held.decode(), expected[-slots]))
 
 
 def test_int_arguments_fall_back_to_the_public_setter():
