@@ -344,7 +344,8 @@ class FlowIntegrator:
         timestamp_us : int
             Capture timestamp, µs, source clock.
         flow_x_px, flow_y_px : float
-            Image flow since the previous frame, px/frame (x right, y down).
+            Image flow since the previous frame, px/frame (x right, y down). Not finite,
+            or a focal length or more: the frame counts as blind.
         quality : int
             0..255; 0 = blind (no usable flow).
 
@@ -356,7 +357,9 @@ class FlowIntegrator:
         """
         ts = int(timestamp_us)
         q = max(0, min(255, int(quality))) if math.isfinite(quality) else 0
-        if not (math.isfinite(flow_x_px) and math.isfinite(flow_y_px)):
+        # NaN, or a flow of a focal length or more (45° or more of view per frame): no
+        # camera measures that, and sums of such values overflow the wire's fields
+        if not math.hypot(flow_x_px, flow_y_px) < self.focal_length_px:
             q = 0
         if self._last_us is None:
             self.restart(ts)

@@ -129,6 +129,14 @@ def test_quality_mean_and_blind_frames():
     # NaN flow counts as blind.
     integ.add_frame(timestamp_us=50_000, flow_x_px=math.nan, flow_y_px=0, quality=200)
     assert integ.take().quality == 0
+    # So does a flow no camera measures (a focal length or more per frame): two such
+    # frames summed would overflow to inf, which no link could encode
+    for t, flow in ((60_000, 1e300), (70_000, 1.5e308), (80_000, 400.0)):
+        integ.add_frame(timestamp_us=t, flow_x_px=flow, flow_y_px=-flow, quality=200)
+        iv = integ.take()
+        assert iv.quality == 0 and iv.integrated_x == iv.integrated_y == 0.0
+    integ.add_frame(timestamp_us=90_000, flow_x_px=399.0, flow_y_px=0.0, quality=200)
+    assert integ.take().quality == 200
 
 
 def test_blind_keepalive_sample_extends_instead_of_restarting():
