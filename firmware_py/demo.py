@@ -19,7 +19,7 @@ import sys
 import threading
 import time
 
-from .config import ConfigError, load_config
+from .config import ConfigError, LinkConfigSection, load_config
 
 __all__ = ["run_demo", "DEMO_SOURCE", "DEMO_SECONDS"]
 
@@ -106,7 +106,12 @@ def run_demo(*, frames: int | None = None, config_path: str | None = None, sourc
         if size:
             config.set("source", "width", int(size[0]))
             config.set("source", "height", int(size[1]))
+        if frames is not None and frames < 1:
+            raise ConfigError(f"command line: --frames {frames}: must be >= 1")
         master, slave = os.openpty()
+        # the demo's link is its own: MAVLink for ArduPilot into its pseudo-terminal, none
+        # of the file's [link] keys (an MSP protocol, a flight's message log) apply
+        config.link = LinkConfigSection()
         config.set("link", "port", os.ttyname(slave))
         config.set("link", "baud", DEMO_BAUD)
         config.set("link", "autopilot", "ardupilot")

@@ -34,6 +34,35 @@ def test_demo_prints_live_telemetry_and_a_summary(tmp_path):
     assert "Traceback" not in result.stderr
 
 
+def test_demo_link_ignores_the_files_link_keys(tmp_path):
+    """A flight's configuration for INAV (MSP) with a message log: the demo still speaks
+    MAVLink into its own pseudo-terminal, and writes nothing into the flight's log."""
+    from io import StringIO
+
+    from firmware_py.demo import run_demo
+
+    flight_log = tmp_path / "flight.csv"
+    config = tmp_path / "inav.toml"
+    config.write_text('[link]\nport = "/dev/ttyAMA0"\nbaud = 57600\nautopilot = "inav"\nprotocol = "msp"\n'
+                      f'message_log = "{flight_log}"\n')
+    out = StringIO()
+    code = run_demo(frames=120, source="synthetic:circle=2,period=1", config_path=str(config), out=out,
+                    backend=engine_backend(), size=(96, 72))
+    summary = out.getvalue().splitlines()[-1]
+    assert code == 0, out.getvalue()
+    match = re.search(r"received (\d+) OPTICAL_FLOW", summary)
+    assert match and int(match[1]) > 0, summary
+    assert not flight_log.exists()
+
+
+def test_demo_rejects_a_frame_count_below_one():
+    for count in ("0", "-3"):
+        result = run_cli(["--demo", "--frames", count], timeout=60)
+        assert result.returncode == 2, result.stdout + result.stderr
+        assert f"--frames {count}: must be >= 1" in result.stderr
+        assert "summary:" not in result.stdout
+
+
 def test_demo_stops_on_its_own_after_the_set_time():
     # no --frames: the default run time is 10 s; run_demo's own parameter keeps this test short
     from io import StringIO
