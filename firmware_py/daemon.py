@@ -21,6 +21,7 @@ large frame subset is not a gap at every frame.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import threading
@@ -46,9 +47,10 @@ __all__ = ["Daemon", "SourceKeeper", "FrameMailbox", "SteadySubset", "Stats", "c
 log = logging.getLogger("emdflowd")
 
 _POLL_S = 0.01            # longest wait for a frame before servicing the link again
-# A driver read that has not returned for this long is hung (OpenCV's V4L2 read gives up
-# after 10 s): only a new process recovers it, so the daemon exits 1 and systemd restarts it.
-_STUCK_READ_S = 20.0
+# A driver call (open, read, close) that has not returned for this long is hung (OpenCV's
+# V4L2 read gives up after 10 s): only a new process recovers it, so the daemon exits 1 and
+# systemd restarts it.
+_STUCK_DRIVER_S = 20.0
 # Frames further apart than this many typical processed intervals are a gap (and no frame
 # for that long is blindness), when that is longer than the configured time.
 _GAP_INTERVALS = 3.0
@@ -289,9 +291,11 @@ class SourceKeeper:
         #: a reopen): the daemon checks what the camera delivers
         self.on_open: Callable[[FrameSource], None] | None = None
         self._bad_seen = 0  # the source's bad_frames already added to stats.bad_frames
-        #: clock() (time.monotonic() in the daemon) when the current source.read() started,
-        #: None outside a read
-        self.reading_since: float | None = None
+        #: clock() (time.monotonic() in the daemon) when the current driver call started
+        #: (the source's open, read or close; also the factory making it), None outside one
+        self.busy_since: float | None = None
+        #: that call's name ("open", "read", "close")
+        self.busy_with = ""
         #: a recording (file, replay) reached its end: nothing more to read, nothing to reopen
         self.ended = False
 
@@ -317,10 +321,20 @@ class SourceKeeper:
         log.warning("%s; reopening in %.1f s (heartbeats continue, quality 0)", what, self._delay)
         self._delay = min(self.backoff_max_s, self._delay * 2.0)
 
+    @contextlib.contextmanager
+    def _driver_call(self, what: str):
+        """Mark a call into the camera's driver, which may hang (see ``busy_since``)."""
+        self.busy_with, self.busy_since = what, self._clock()
+        try:
+            yield
+        finally:
+            self.busy_since = None
+
     def _open(self) -> bool:
         try:
-            source = self.factory()
-            source.open()
+            with self._driver_call("open"):
+                source = self.factory()
+                source.open()
         except Exception as exc:  # SourceError, or a driver raising something else
             self._fail(f"source: cannot open: {exc}")
             return False
@@ -352,15 +366,14 @@ class SourceKeeper:
                     return None
             source = self.source
             t0 = host_us()
-            self.reading_since = self._clock()
             try:
-                frame = source.read()
+                with self._driver_call("read"):
+                    frame = source.read()
             except Exception as exc:
                 error = str(exc) or type(exc).__name__
             else:
                 error = None
             finally:
-                self.reading_since = None
                 self._count_bad(source)
             if error is not None:
                 self._fail(error if source.uri in error else f"source {source.uri}: {error}")
@@ -392,7 +405,8 @@ class SourceKeeper:
     def close(self) -> None:
         if self.source is not None:
             try:
-                self.source.close()
+                with self._driver_call("close"):
+                    self.source.close()
             except Exception as exc:
                 log.debug("closing source: %s", exc)
             self.source = None
@@ -711,10 +725,11 @@ class Daemon:
             if now_s >= next_log:
                 self._log_status()
                 next_log = now_s + d.log_interval_s
-            since = keeper.reading_since
-            if since is not None and now_s - since > _STUCK_READ_S:
-                log.error("source %s: read has not returned for %.0f s (driver hung): exiting so "
-                          "that systemd restarts the daemon", self.config.source.uri, now_s - since)
+            since = keeper.busy_since
+            if since is not None and now_s - since > _STUCK_DRIVER_S:
+                log.error("source %s: %s() has not returned for %.0f s (driver hung): exiting so "
+                          "that systemd restarts the daemon", self.config.source.uri, keeper.busy_with,
+                          now_s - since)
                 self.exit_code = 1
                 break
             if limit is not None and self.stats.processed >= limit:

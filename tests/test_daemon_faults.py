@@ -127,6 +127,56 @@ def test_source_that_raises_is_reopened_and_link_reports_blind(tmp_path, caplog)
     assert ("HEARTBEAT", None) in gap
 
 
+@pytest.mark.parametrize("call", ["read", "close", "open"])
+def test_a_hung_driver_call_ends_the_daemon_for_systemd_to_restart(tmp_path, caplog, monkeypatch, call):
+    """A camera whose read, or whose close after a failed read, or whose reopen never
+    returns (a wedged USB device): the main loop notices the call has not returned for
+    the set time and exits 1, so systemd restarts the process (only a new one recovers
+    such a driver). Before, a hung open or close went unnoticed: blind for good, the
+    watchdog fed."""
+    import threading
+
+    import firmware_py.daemon as daemon_module
+
+    monkeypatch.setattr(daemon_module, "_STUCK_DRIVER_S", 1.0)
+    caplog.set_level(logging.INFO, logger="emdflowd")
+    release = threading.Event()  # (frees the capture thread at the end; 15 s at most)
+    made = []
+
+    class Wedged(FaultySource):
+        def read(self):
+            if call == "read" and self.reads == 14:
+                self.reads += 1
+                release.wait(15)
+            return super().read()
+
+        def close(self):
+            if call == "close" and self is made[0]:
+                release.wait(15)
+            self.inner.close()
+
+        def open(self):
+            if call == "open" and len(made) == 2:
+                release.wait(15)
+            self.inner.open()
+
+    def factory():  # the first camera fails at its 15th read (unplugged), the next ones work
+        made.append(Wedged(make_source("synthetic:u=2,v=1", width=96, height=72, fps=100),
+                           fail_at=15 if call != "read" and not made else None))
+        return made[-1]
+
+    started = time.monotonic()
+    try:
+        code, daemon, msgs = _run_inprocess(tmp_path, factory, frames=300,
+                                            settings=[("daemon", "threading", "capture-thread")])
+    finally:
+        release.set()
+    assert code == 1, caplog.text[-2000:]
+    assert f"source synthetic:u=2,v=1: {call}() has not returned for 1 s (driver hung)" in caplog.text
+    assert time.monotonic() - started < 12
+    assert daemon.stats.processed < 300
+
+
 def test_frame_of_wrong_size_is_skipped_with_a_clear_line(tmp_path, caplog):
     def factory():
         return FaultySource(make_source("synthetic:u=2,v=1", width=96, height=72, fps=100), bad_at=10)
