@@ -240,6 +240,36 @@ def _run_port(transport, start_us: int, seconds: float, step_us: int = 10_000) -
     return now
 
 
+def test_a_port_another_link_holds_is_not_shared(tmp_path, caplog):
+    """Two daemons on one port (the service, and one started by hand): the second does not
+    interleave its messages with the first's; it says the port is in use, keeps retrying,
+    and takes the port over once the first lets go."""
+    caplog.set_level(logging.WARNING, logger="firmware_py.links")
+    peer = PtyPeer(tmp_path / "ttyFC")
+    config = LinkConfig(port=peer.path, baud=115200, autopilot="ardupilot", focal_length_px=400.0)
+    first = open_link(config)
+    second = open_link(config)
+    try:
+        assert first.stats["port_open"] is True and second.stats["port_open"] is False
+        assert f"cannot open serial port {peer.path} at 115200 baud: in use: locked by another process" in (
+            second.stats["last_error"])
+        assert second.stats["last_error"] in caplog.text
+        FrameFeeder(second, fps=FPS).frames(20, flow_y=1.0)  # runs without the port
+        assert second.stats["bytes_written"] == 0
+        first.close()
+        now = host_us()
+        for k in range(1, 100):
+            second.service(now + k * 100_000)
+            if second.stats["port_open"]:
+                break
+        assert second.stats["port_open"] is True
+        assert strict_parse(peer.read())[0].get_type() == "HEARTBEAT"
+    finally:
+        first.close()
+        second.close()
+        peer.close()
+
+
 def test_a_port_that_fails_right_after_each_open_is_retried_ever_more_slowly(tmp_path, caplog):
     """Reopened every 0.5 s forever with two warnings each time, such a port filled the log
     (239 warnings a minute). The back-off doubles up to 8 s; only a port that stayed open for

@@ -170,12 +170,19 @@ class SerialTransport:
         import serial  # pyserial; imported late so the module loads without it for docs
 
         try:
-            ser = serial.Serial(self.port, self.baud, timeout=0, write_timeout=0)
+            # exclusive (an advisory lock, flock): a second emdflowd on the same port, e.g.
+            # one started by hand beside the service, must not interleave its messages
+            ser = serial.Serial(self.port, self.baud, timeout=0, write_timeout=0, exclusive=True)
             fd = ser.fileno()
             os.set_blocking(fd, False)
         except (OSError, ValueError, serial.SerialException) as exc:
             self.stats["open_failures"] += 1
-            self._fail(f"cannot open serial port {self.port} at {self.baud} baud: {exc}",
+            if getattr(exc, "errno", None) in (errno.EAGAIN, errno.EWOULDBLOCK):
+                why = ("in use: locked by another process (another emdflowd, e.g. the service while "
+                       "one runs by hand?); not writing to it")
+            else:
+                why = str(exc)
+            self._fail(f"cannot open serial port {self.port} at {self.baud} baud: {why}",
                        first=self._failures_logged == 0)
             self._failures_logged += 1
             self._next_open_us = now_us + self._backoff_us
