@@ -420,6 +420,33 @@ def test_v4l2_source_settings_timestamps_and_binning():
     assert cap.released
 
 
+def test_v4l2_device_index_out_of_range_is_a_clear_error():
+    """Linux numbers video devices 0..255: a larger index is a configuration error naming
+    it (it reached OpenCV, whose overflow error ended the daemon with a traceback, exit 1:
+    systemd restarted it in a loop); an error OpenCV raises when opening the camera is a
+    source error naming the camera."""
+    assert V4L2Source("255").device == 255
+    for index in ("256", "99999999999999999999"):
+        with pytest.raises(SourceError, match=rf"v4l2 device index {index}: expected 0 to 255"):
+            V4L2Source(index)
+
+    def refusing(device, api):
+        raise cv2.error("OpenCV(5.0.0) videoio: cannot handle this device")
+
+    with pytest.raises(SourceError, match=r"v4l2:3: cannot open the camera: OpenCV.*cannot handle this device"):
+        V4L2Source("3", capture_factory=refusing).open()
+
+
+def test_v4l2_index_out_of_range_on_the_command_line_exits_2(tmp_path):
+    from daemon_util import run_cli
+
+    result = run_cli(["--source", "v4l2:99999999999999999999", "--serial", str(tmp_path / "ttyFC"),
+                      "--focal-length-px", "300"], timeout=60)
+    assert result.returncode == 2, result.stderr[-2000:]
+    assert "v4l2 device index 99999999999999999999: expected 0 to 255" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
 def test_v4l2_without_exposure_asks_for_auto_exposure():
     """A UVC camera keeps an earlier run's manual exposure until it loses power: with no
     exposure_us the source asks for auto exposure (V4L2_EXPOSURE_APERTURE_PRIORITY)."""

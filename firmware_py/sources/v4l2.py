@@ -93,9 +93,16 @@ def raw_to_gray(raw: np.ndarray, pixel_format: str, width: int, height: int) -> 
     raise SourceError(f"pixel format {pixel_format!r}: expected one of {', '.join(PIXEL_FORMATS)}")
 
 
+#: V4L2 device indices: /dev/video0 .. /dev/video255 (the kernel's VIDEO_NUM_DEVICES)
+MAX_DEVICE_INDEX = 255
+
+
 def parse_device(target: str) -> str | int:
     """``/dev/video0`` → that path; ``0`` → index 0; anything else is an error."""
     if target.isdigit():
+        if int(target) > MAX_DEVICE_INDEX:
+            raise SourceError(f"v4l2 device index {target}: expected 0 to {MAX_DEVICE_INDEX} "
+                              f"(/dev/video0 to /dev/video{MAX_DEVICE_INDEX})")
         return int(target)
     if target.startswith("/dev/"):
         return target
@@ -164,7 +171,10 @@ class V4L2Source(FrameSource):
         self.close()
         if isinstance(self.device, str) and not Path(self.device).exists():
             raise SourceError(f"{self.uri}: {self.device} does not exist (camera unplugged?)")
-        cap = self._factory(self.device, cv2.CAP_V4L2)
+        try:
+            cap = self._factory(self.device, cv2.CAP_V4L2)
+        except cv2.error as exc:  # OpenCV refusing the device outright
+            raise SourceError(f"{self.uri}: cannot open the camera: {str(exc).strip()}") from exc
         if not cap.isOpened():
             cap.release()
             raise SourceError(
