@@ -514,6 +514,38 @@ def test_engine_ab_other_option_times_an_option_against_the_default(capsys):
     assert "no-such-ground" in capsys.readouterr().err
 
 
+def test_engine_ab_option_applies_to_both_engines(monkeypatch, capsys):
+    """``--option KEY=VALUE`` gives both engines the keyword (e.g. the dense field only,
+    ``summary_evidence=False``), and ``--other-option`` the other one on top of it."""
+    from pathlib import Path
+
+    from emdflow.tools import engine_ab
+
+    pytest.importorskip("pyopencl")
+    root = str(Path(__file__).resolve().parents[1])
+    other = engine_ab.load_checkout(Path(root), name="emdflow_ab_option")
+    seen = {}
+    for name, module in (("other", other), ("this", __import__("emdflow"))):
+        real = module.FlowEstimator
+
+        def capture(*a, name=name, real=real, **kw):
+            seen[name] = kw
+            return real(*a, **kw)
+
+        monkeypatch.setattr(module, "FlowEstimator", capture)
+    r = engine_ab.compare(other, 64, 48, rounds=1, block=2, options={"summary_evidence": False},
+                          other_options={"evidence_row_step": 1})
+    assert r["other"] and r["this"]
+    assert seen["this"]["summary_evidence"] is False and "evidence_row_step" not in seen["this"]
+    assert seen["other"]["summary_evidence"] is False and seen["other"]["evidence_row_step"] == 1
+    monkeypatch.undo()
+    assert engine_ab.main([root, "--size", "64x48", "--rounds", "2", "--block", "3",
+                           "--option", "summary_evidence=False"]) == 0
+    assert "over gravel, summary_evidence=False" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        engine_ab.main([root, "--option", "summary_evidence"])
+
+
 def test_engine_ab_summary_times_summarize_on_each_engines_fields(capsys, monkeypatch):
     """``--summary`` alternates the two checkouts' ``summarize`` over each one's own fields
     (every call gets a ready field with evidence) instead of their updates."""

@@ -24,6 +24,11 @@ same checkout times the cost of an option::
 
     python -m emdflow.tools.engine_ab . --other-option evidence_row_step=1 --size 320x240
 
+``--option KEY=VALUE`` passes a keyword to both engines, e.g. ``summary_evidence=False`` for
+the dense field only::
+
+    python -m emdflow.tools.engine_ab /tmp/before --option summary_evidence=False
+
 ``--summary`` times ``summarize`` instead of ``update``: each checkout's engine makes the
 fields of the clip once, then the two summaries alternate over them in blocks (back to
 back, so the summary's tables stay in the caches: the daemon, which calls it right after
@@ -73,9 +78,9 @@ def load_checkout(root: Path, name: str = "emdflow_other"):
 
 def compare(other, width: int, height: int, model: str = "paper", rounds: int = 12, block: int = 50,
             warmup: int = 2, other_options: dict | None = None, texture: str = DEFAULT_TEXTURE,
-            drift: float = 0.0, summary: bool = False) -> dict:
-    """Alternating blocks of ``other.FlowEstimator`` (with ``other_options`` on top of the
-    model's) and this checkout's on one camera flight (over ``texture``, with an exposure
+            drift: float = 0.0, summary: bool = False, options: dict | None = None) -> dict:
+    """Alternating blocks of ``other.FlowEstimator`` (with ``options`` and then
+    ``other_options`` on top of the model's) and this checkout's (with ``options``) on one camera flight (over ``texture``, with an exposure
     ramp of ``drift``); returns the per-round ms/frame of both and the median paired
     ratio. With ``summary``, of each checkout's ``summarize`` on its own engine's ready
     fields of the flight instead (ms per call)."""
@@ -83,8 +88,9 @@ def compare(other, width: int, height: int, model: str = "paper", rounds: int = 
     from emdflow.bench import _frames, alternating_blocks
 
     frames = _frames(width, height, 40, drift, texture)
-    engines = {"other": other.FlowEstimator(width, height, **{**MODELS[model], **(other_options or {})}),
-               "this": emdflow.FlowEstimator(width, height, **MODELS[model])}
+    both = {**MODELS[model], **(options or {})}
+    engines = {"other": other.FlowEstimator(width, height, **{**both, **(other_options or {})}),
+               "this": emdflow.FlowEstimator(width, height, **both)}
     for est in engines.values():
         for frame in frames[: max(10, est.params.history_frames)]:
             est.update(frame)
@@ -107,6 +113,9 @@ def main(argv=None) -> int:
     ap.add_argument("--model", default="paper", choices=tuple(MODELS))
     ap.add_argument("--rounds", type=int, default=12)
     ap.add_argument("--block", type=int, default=50)
+    ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                    help="estimator keyword for both engines (repeatable), e.g. summary_evidence=False "
+                         "(the dense field only)")
     ap.add_argument("--other-option", action="append", default=[], metavar="KEY=VALUE",
                     help="estimator keyword for the other engine only (repeatable), e.g. "
                          "evidence_row_step=1")
@@ -116,15 +125,21 @@ def main(argv=None) -> int:
     ap.add_argument("--summary", action="store_true",
                     help="time summarize() on each engine's fields instead of update()")
     a = ap.parse_args(argv)
-    options = {}
-    for item in a.other_option:
-        key, sep, text = item.partition("=")
-        if not sep or not key.isidentifier():
-            ap.error(f"--other-option {item!r}: expected KEY=VALUE, e.g. evidence_row_step=1")
-        try:
-            options[key] = ast.literal_eval(text)
-        except (ValueError, SyntaxError):
-            options[key] = text
+
+    def keywords(items, flag):
+        out = {}
+        for item in items:
+            key, sep, text = item.partition("=")
+            if not sep or not key.isidentifier():
+                ap.error(f"{flag} {item!r}: expected KEY=VALUE, e.g. evidence_row_step=1")
+            try:
+                out[key] = ast.literal_eval(text)
+            except (ValueError, SyntaxError):
+                out[key] = text
+        return out
+
+    options = keywords(a.other_option, "--other-option")
+    shared = keywords(a.option, "--option")
     from emdflow.tools.video_io import parse_size
 
     try:
@@ -134,12 +149,13 @@ def main(argv=None) -> int:
     try:
         other = load_checkout(a.checkout.resolve())
         r = compare(other, width, height, a.model, a.rounds, a.block, other_options=options,
-                    texture=a.texture, drift=a.drift, summary=a.summary)
+                    texture=a.texture, drift=a.drift, summary=a.summary, options=shared)
     except (ToolError, TypeError, ValueError) as exc:
         print(f"engine_ab: {exc}", file=sys.stderr)
         return 2
     label = "".join(f" {k}={v!r}" for k, v in options.items())
     ground = a.texture + (f", drift {a.drift:+g}" if a.drift else "")
+    ground += "".join(f", {k}={v!r}" for k, v in shared.items())
     what = "summarize() call" if a.summary else "frame"
     print(f"{a.model} {width}x{height} over {ground}: other{label} {statistics.median(r['other']):.3f} ms, "
           f"this {statistics.median(r['this']):.3f} ms per {what}; other / this per round "
