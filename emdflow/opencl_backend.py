@@ -487,6 +487,11 @@ class PackedCodes:
         # read memory the engine is about to overwrite
         self._lock = threading.Lock()
 
+    def __reduce__(self):
+        # (a lock does not pickle: a copy gets its own, and its own words)
+        with self._lock:
+            return PackedCodes, (self.words.copy(), self.width)
+
     def detach(self) -> None:
         """Copy the words out of the memory they share with the engine (its result buffer,
         which a later frame overwrites)."""

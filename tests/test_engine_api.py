@@ -52,6 +52,28 @@ def test_arrays_belong_to_caller_and_are_lazy(backend):
     assert first.u is first.u  # cached
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_fields_pickle_and_copy(backend):
+    """A field kept for later (a worker process, a recording) pickles and copies, read or
+    not yet read, and the copy holds the same flow and summary after later updates."""
+    import copy
+    import pickle
+
+    est = emdflow.FlowEstimator(96, 72, backend=backend)
+    flight = _flight(flow=(2.0, -1.0))
+    fields = [est.update(flight.render(t)) for t in range(6)]
+    unread, read = fields[4], fields[5]
+    read.u  # noqa: B018 - materialised before copying
+    clones = [(f, c(f)) for f in (unread, read) for c in (copy.copy, copy.deepcopy,
+                                                         lambda f: pickle.loads(pickle.dumps(f)))]
+    for t in range(6, 10):
+        est.update(flight.render(t))
+    for original, clone in clones:
+        np.testing.assert_array_equal(clone.u, original.u)
+        np.testing.assert_array_equal(clone.v, original.v)
+        assert emdflow.summarize(clone) == emdflow.summarize(original)
+
+
 def test_opencl_codes_stay_packed_until_read_and_match_numpy():
     pytest.importorskip("pyopencl")
     ocl = emdflow.FlowEstimator(96, 72, backend="opencl")

@@ -341,6 +341,15 @@ def test_result_buffers_are_read_in_place_and_held_codes_copied_out(monkeypatch)
         u_o, v_o = codes.decode()
         assert np.array_equal(u_o, u_r) and np.array_equal(v_o, v_r)
 
+    # fields pickle and copy (each copy with words of its own), before and after detaching
+    import copy
+    import pickle
+
+    for codes, (u_r, v_r) in ((kept[-1], expected[-1]), (kept[0], expected[0])):
+        for clone in (pickle.loads(pickle.dumps(codes)), copy.deepcopy(codes), copy.copy(codes)):
+            assert not any(np.shares_memory(clone.words, host) for host in hosts)
+            assert all(np.array_equal(a, b) for a, b in zip(clone.decode(), (u_r, v_r)))
+
     # a decode in progress (holding the codes' lock) on the buffer the next frame takes
     held = kept[-slots]
     finished = threading.Event()
