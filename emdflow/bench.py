@@ -37,7 +37,6 @@ import os
 import statistics
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
@@ -293,43 +292,12 @@ def _size_list(text: str) -> tuple[tuple[int, int], ...]:
                                          "e.g. 320x240,640x480") from None
 
 
-def _output_problem(path: str) -> str | None:
-    """Why ``path`` cannot be written (checked before the minutes of the run), or None."""
-    from .tools import missing_folder
-
-    target = Path(path)
-    if problem := missing_folder(target):
-        return problem
-    if target.is_dir():
-        return "is a folder"
-    if not os.access(target.resolve().parent, os.W_OK):
-        return f"folder {target.resolve().parent} is not writable"
-    return None
-
-
-def _plot_type_problem(path: str) -> str | None:
-    """Why matplotlib cannot draw ``path`` (not installed, or no image type for it), or None."""
-    from .tools import matplotlib_missing
-
-    missing = matplotlib_missing()
-    if missing:
-        return missing
-    from matplotlib.backend_bases import FigureCanvasBase
-
-    ext = Path(path).suffix.lower()
-    if not ext:
-        return "no file ending to choose the image type; use .png"
-    if ext[1:] not in FigureCanvasBase.get_supported_filetypes():
-        return f"matplotlib cannot write {ext} files; use .png"
-    return None
-
-
 def _check_arguments(parser: argparse.ArgumentParser, args) -> dict:
     """Usage errors (parser.error, exit 2) before anything is rendered or timed; returns
     the engine's keyword arguments."""
     from .params import EngineParams
     from .synthetic import load_texture
-    from .tools import frame_size_problem
+    from .tools import frame_size_problem, output_problem, plot_type_problem
 
     try:
         load_texture(args.texture)
@@ -342,6 +310,11 @@ def _check_arguments(parser: argparse.ArgumentParser, args) -> dict:
     if not (math.isfinite(args.drift) and args.drift > -1.0):
         # (the exposure factor 1 + drift reaches 0 at -1: a black clip)
         parser.error(f"--drift {args.drift:g}: must be a finite number > -1 (relative exposure change)")
+    if args.drift and not args.stages:  # (the timing table's flight has no exposure ramp)
+        parser.error("--drift: only with --stages")
+    for option, path in (("--plot", args.plot), ("--json", args.json)):
+        if path and args.stages:  # (the per-command profile is one printed line per size)
+            parser.error(f"{option}: not with --stages (its profile is printed, not plotted or saved)")
     for w, h in args.sizes:
         problem = frame_size_problem(w, h, dis=not args.stages, dis_role=" (one of the methods timed)")
         if problem:
@@ -365,7 +338,7 @@ def _check_arguments(parser: argparse.ArgumentParser, args) -> dict:
     except (TypeError, ValueError) as exc:
         parser.error(f"{' '.join(given) or f'--model {args.model}'}: {exc}")
     for option, path in (("--plot", args.plot), ("--json", args.json)):
-        problem = path and (_output_problem(path) or (option == "--plot" and _plot_type_problem(path)))
+        problem = path and (output_problem(path) or (option == "--plot" and plot_type_problem(path)))
         if problem:
             parser.error(f"{option} {path}: {problem}")
     return kwargs

@@ -88,8 +88,8 @@ def run_flow(args) -> int:
     import numpy as np
 
     from emdflow import summarize
-    from emdflow.tools import (ToolError, check_count, check_positive, make_estimator, missing_folder, progress_bar,
-                               refuse_overwrite)
+    from emdflow.tools import (ToolError, check_count, check_positive, make_estimator, output_problem, progress_bar,
+                               refuse_overwrite, refuse_same_outputs)
     from emdflow.tools.flo import write_flo
     from emdflow.tools.flowviz import render_flow_frame
     from emdflow.tools.video_io import VideoWriter
@@ -97,9 +97,11 @@ def run_flow(args) -> int:
     check_positive("--max-flow", args.max_flow, "px/frame")
     check_count("--upscale", args.upscale)
     for path in (args.npz, args.snapshot):
-        if path and (problem := missing_folder(path)):
+        if path and (problem := output_problem(path)):
             raise ToolError(f"{path}: {problem}", 2)
         refuse_overwrite(args.input, path)
+    refuse_same_outputs((("-o", args.output), ("--npz", args.npz), ("--snapshot", args.snapshot),
+                         ("--flo-dir", args.flo_dir)))
     if args.snapshot:
         import cv2
 
@@ -154,7 +156,8 @@ def run_flow(args) -> int:
     if args.snapshot and n:
         import cv2
 
-        if not cv2.imwrite(args.snapshot, picture, [cv2.IMWRITE_PNG_COMPRESSION, 9]):
+        png = Path(args.snapshot).suffix.lower() == ".png"
+        if not cv2.imwrite(args.snapshot, picture, [cv2.IMWRITE_PNG_COMPRESSION, 9] if png else []):
             raise ToolError(f"{args.snapshot}: OpenCV cannot write this image", 2)
     if interrupted:
         print(f"emdflow flow: interrupted after {writer.frames_written} frames; {args.output} is playable",
@@ -177,6 +180,12 @@ def run_render(args) -> int:
 
     source, fps = _open_input(args)
     codec = codec_for(args.output, args.codec)  # (.mp4: mp4v, colour channels)
+    if source.width % 2 or source.height % 2:
+        # (OpenCV's writer cuts a side to even: the recording would lose the last row or
+        # column, and the daemon would read another size than the engine saw here)
+        source.close()
+        raise ToolError(f"{args.input}: {source.width}x{source.height}: a video stores even sides only; "
+                        f"choose an even size (e.g. --size {source.width // 2 * 2}x{source.height // 2 * 2})", 2)
     writer = VideoWriter(args.output, fps, codec, gray=codec == "ffv1")
     try:
         with writer, progress_bar(source.frame_count, "render", disable=args.quiet) as bar:

@@ -781,3 +781,82 @@ def test_devices_says_why_no_device_runs_the_engine(monkeypatch, capsys):
     assert any(f"broken on purpose {token}" in row for row in rows)
     err = captured.err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("emdflow devices: error: the engine cannot run (")
+
+
+def test_output_mistakes_are_found_before_the_run(tmp_path, capsys, clip, backend):
+    """Outputs that cannot be written, or two outputs on one file, stop a tool before its
+    run (they were found after it, its results lost, or the later output overwrote the
+    earlier), and so do option combinations a tool would ignore."""
+    from emdflow import bench
+
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    video = str(tmp_path / "o.avi")
+    assert main(["flow", str(clip[0]), "-o", video, "--npz", str(folder), "--backend", backend]) == 2
+    _one_line_error(capsys, folder, "is a folder")
+    assert main(["flow", str(clip[0]), "-o", video, "--npz", video, "--backend", backend]) == 2
+    _one_line_error(capsys, f"--npz {video}: the same file as -o {video}")
+    assert not Path(video).exists()
+    assert main(["eval", "--quick", "--csv", str(folder)]) == 2
+    _one_line_error(capsys, folder, "is a folder")
+    for label in ("dis", " "):
+        assert main(["eval", "--quick", "--label", label, "--csv", str(tmp_path / "e.csv")]) == 2
+        _one_line_error(capsys, "--label", "not be empty or 'dis'")
+    if os.geteuid() != 0:  # (root writes anywhere)
+        locked = tmp_path / "locked"
+        locked.mkdir(mode=0o500)
+        assert main(["eval", "--quick", "--markdown", str(locked / "e.md")]) == 2
+        _one_line_error(capsys, "--markdown", "is not writable")
+    with pytest.raises(SystemExit):
+        bench.main(["--stages", "--sizes", "64x48", "--json", str(tmp_path / "s.json")])
+    assert "--json: not with --stages" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        bench.main(["--sizes", "64x48", "--drift", "0.5"])
+    assert "--drift: only with --stages" in capsys.readouterr().err
+
+
+def test_eval_plot_needs_an_image_file_ending_and_speeds_count_once(tmp_path, capsys):
+    from emdflow.cli import build_parser
+    from emdflow.tools.evaluate import config_from_args
+
+    args = build_parser().parse_args(["eval", "--speeds", "3,3.0,5", "--variants", "base,base",
+                                      "--directions", "0,90,0"])
+    config = config_from_args(args)
+    assert config.speeds == (3.0, 5.0) and config.variants == ("base",) and config.directions == (0.0, 90.0)
+    pytest.importorskip("matplotlib")
+    csv_path = tmp_path / "e.csv"
+    csv_path.write_text("variant,method,speed,frames\nbase,emd,3,2\n")
+    assert main(["eval", "--from-csv", str(csv_path), "--plot", str(tmp_path / "p.txt")]) == 2
+    _one_line_error(capsys, "--plot", "cannot write .txt files; use .png")
+
+
+def test_flow_of_odd_size_keeps_every_pixel_and_snapshots_in_any_format(tmp_path, capfd, backend):
+    """OpenCV's writer stores even sides only: an odd flow video is padded (it cut the last
+    row and column, and said the size it was asked for); a JPEG snapshot gets no PNG
+    option (OpenCV warned about it on stderr). A recording of odd size is refused: it could
+    not be read back as rendered."""
+    out, snap = tmp_path / "odd.avi", tmp_path / "s.jpg"
+    assert main(["flow", "synthetic:frames=4,size=33x25", "-o", str(out), "--upscale", "3",
+                 "--snapshot", str(snap), "--backend", backend]) == 0
+    err = capfd.readouterr().err
+    assert "wrote" in err and "100x76" in err and "WARN" not in err
+    frames, _ = _read_video(out)
+    assert len(frames) == 4 and frames[0].shape == (76, 100, 3)
+    assert np.array_equal(frames[0][:, 99], frames[0][:, 98]) and cv2.imread(str(snap)).shape == (75, 99, 3)
+    assert main(["render", "synthetic:frames=3,size=33x25", "-o", str(tmp_path / "r.mkv")]) == 2
+    assert "33x25: a video stores even sides only" in capfd.readouterr().err
+    assert not (tmp_path / "r.mkv").exists()
+
+
+def test_a_cut_off_video_is_read_to_its_end_with_one_warning(tmp_path, capfd, backend):
+    full = tmp_path / "full.avi"
+    assert main(["render", "synthetic:frames=30,size=96x72", "-o", str(full)]) == 0
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(full.read_bytes()[: full.stat().st_size // 2])
+    capfd.readouterr()
+    assert main(["frames", str(cut), "--fps", "30", "--backend", backend, "-o", str(tmp_path / "f.csv")]) == 0
+    err = capfd.readouterr().err
+    rows = (tmp_path / "f.csv").read_text().splitlines()[1:]
+    assert 1 <= len(rows) < 28
+    assert f"{cut}: the video ended after {len(rows)} of the 30 frames its container declares" in err
+    assert "[ffv1" not in err

@@ -49,3 +49,17 @@ def test_render_flow_frame_size_and_content():
     np.testing.assert_array_equal(img[31, 31], expected)
     with pytest.raises(ValueError, match="expected shape"):
         render_flow_frame(gray, u[:5], v, 0, 0, 0)
+
+
+@pytest.mark.parametrize("thickness", [1, 2])
+def test_text_outline_lies_around_its_own_glyphs(thickness):
+    """The dark outline hugs the text: drawn as a thicker stroke it advanced further per
+    glyph, so a number's outline ran ahead of it and read as ghost digits ("q 2222")."""
+    from emdflow.tools.flowviz import _text
+
+    img = np.full((60, 420, 3), 128, np.uint8)
+    _text(img, "q 222  12.50 px/frame", (10, 40), 0.8, (255, 255, 255), thickness)
+    white = np.flatnonzero((img > 200).all(axis=2).any(axis=0))
+    dark = np.flatnonzero((img < 40).all(axis=2).any(axis=0))
+    assert white.size and dark.size
+    assert white.min() - 3 <= dark.min() and dark.max() <= white.max() + 3

@@ -41,7 +41,7 @@ import contextlib
 
 __all__ = ["DIS_MIN_LONG_SIDE", "ToolError", "add_engine_arguments", "check_positive", "engine_kwargs",
            "frame_size_problem", "interp_weights", "make_estimator", "matplotlib_missing", "missing_folder",
-           "number_list", "progress_bar"]
+           "number_list", "output_problem", "plot_type_problem", "progress_bar", "refuse_same_outputs"]
 
 #: OpenCV DIS (preset ULTRAFAST, patches of 8 px) needs a frame whose longer side is at
 #: least this many px (measured with OpenCV 5.0 for every size from 8x8 to 79x79: it
@@ -98,6 +98,56 @@ def missing_folder(path) -> str | None:
 
     parent = Path(path).resolve().parent
     return None if parent.is_dir() else f"folder {parent} does not exist"
+
+
+def output_problem(path) -> str | None:
+    """Why an output file cannot be written at ``path`` — its folder is missing or not
+    writable, or the path is a folder — checked before a long run (not when it ends, with
+    the run's results lost), else None; the caller puts the option or path in front."""
+    import os
+    from pathlib import Path
+
+    if problem := missing_folder(path):
+        return problem
+    target = Path(path)
+    if target.is_dir():
+        return "is a folder"
+    if not os.access(target.resolve().parent, os.W_OK):
+        return f"folder {target.resolve().parent} is not writable"
+    return None
+
+
+def plot_type_problem(path) -> str | None:
+    """Why matplotlib cannot draw ``path`` (not installed, or no image type for its file
+    ending), or None."""
+    from pathlib import Path
+
+    missing = matplotlib_missing()
+    if missing:
+        return missing
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    ext = Path(path).suffix.lower()
+    if not ext:
+        return "no file ending to choose the image type; use .png"
+    if ext[1:] not in FigureCanvasBase.get_supported_filetypes():
+        return f"matplotlib cannot write {ext} files; use .png"
+    return None
+
+
+def refuse_same_outputs(named) -> None:
+    """Raise ToolError (code 2) when two outputs, ``(option, path)`` pairs (path None =
+    not given), name the same file: the later one would overwrite the earlier."""
+    from pathlib import Path
+
+    seen = {}
+    for option, path in named:
+        if not path:
+            continue
+        key = Path(path).resolve()
+        if key in seen:
+            raise ToolError(f"{option} {path}: the same file as {seen[key]}", 2)
+        seen[key] = f"{option} {path}"
 
 
 def check_positive(option: str, value, unit: str) -> None:

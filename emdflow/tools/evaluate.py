@@ -731,7 +731,8 @@ def config_from_args(args) -> EvalConfig:
         over["textures"] = tuple(args.textures)
     for key, attr in (("speeds", "speeds"), ("directions", "directions"), ("variants", "variants")):
         if getattr(args, attr):
-            over[key] = getattr(args, attr)
+            # each once (results are kept per speed and variant: "3,3.0" counted frames twice)
+            over[key] = tuple(dict.fromkeys(getattr(args, attr)))
     if args.size:
         w, h = over["width"], over["height"] = parse_size(args.size)
         problem = frame_size_problem(w, h, dis=not args.no_dis, dis_hint=" (or skip it with --no-dis)")
@@ -775,9 +776,21 @@ def _plot_path(args) -> str:
 
 def run(args) -> int:
     """Run ``emdflow eval`` with parsed arguments; returns the exit code."""
-    from emdflow.tools import ToolError, make_estimator, missing_folder, progress_bar
+    from emdflow.tools import (ToolError, make_estimator, output_problem, plot_type_problem, progress_bar,
+                               refuse_same_outputs)
 
+    label = args.label.strip()
+    if not label or label.lower() == "dis":  # (results are kept per method name)
+        raise ToolError(f"--label {args.label!r}: must name the engine, not be empty or 'dis' (OpenCV DIS's "
+                        "rows are named dis)", 2)
+    args.label = label
     args.plot = _plot_path(args)
+    for option, path in (("--csv", None if args.from_csv else args.csv), ("--plot", args.plot),
+                         ("--markdown", args.markdown)):
+        if path and (problem := output_problem(path) or (option == "--plot" and plot_type_problem(path))):
+            raise ToolError(f"{option} {path}: {problem}", 2)
+    refuse_same_outputs((("--from-csv", args.from_csv), ("--csv", None if args.from_csv else args.csv),
+                         ("--plot", args.plot), ("--markdown", args.markdown)))
 
     if args.from_csv:
         try:
@@ -798,9 +811,6 @@ def run(args) -> int:
         config = config_from_args(args)
     except ValueError as e:
         raise ToolError(str(e), 2) from None
-    for path in (args.csv, args.plot, args.markdown):
-        if path and (problem := missing_folder(path)):
-            raise ToolError(f"{path}: {problem}", 2)
 
     def factory(w, h):
         return make_estimator(args, w, h)

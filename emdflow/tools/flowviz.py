@@ -121,8 +121,13 @@ def quality_color(quality: float) -> tuple[int, int, int]:
 
 
 def _text(img, text, org, scale, color, thickness=1):
-    """Text with a dark outline so it reads on any background."""
-    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), thickness + 2, cv2.LINE_AA)
+    """Text with a dark outline so it reads on any background: the same text in black one
+    pixel around it (a thicker black stroke is wider: Hershey glyphs advance by their
+    stroke, so its digits drifted out from under the white ones)."""
+    x, y = org
+    for dx, dy in ((-1, -1), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)):
+        cv2.putText(img, text, (x + dx, y + dy), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), thickness,
+                    cv2.LINE_AA)
     cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, color, thickness, cv2.LINE_AA)
 
 

@@ -193,11 +193,17 @@ class FrameSource:
             while image is not None and n < limit:
                 yield self._prepare(image, self.path)
                 n += 1
-                ok, image = self._capture.read()
+                with _quiet_native_stderr():  # (a damaged stream: FFmpeg's own lines per frame)
+                    ok, image = self._capture.read()
                 if not ok:
                     image = None
         finally:
-            self._capture.release()
+            with _quiet_native_stderr():
+                self._capture.release()
+        declared = self.frame_count
+        if image is None and declared and n + 2 < declared:  # (a container's count may be off by a frame)
+            print(f"emdflow: {self.path}: the video ended after {n} of the {declared} frames its container "
+                  "declares (a cut-off or damaged file?)", file=sys.stderr)
 
     def close(self) -> None:
         """Release the video file (also done when iteration ends)."""
@@ -407,12 +413,18 @@ class VideoWriter:
 
     def write(self, image: np.ndarray) -> None:
         """Append one frame (BGR uint8 or gray uint8, all frames the same size; gray
-        only with ``gray=True``)."""
+        only with ``gray=True``). An odd side is padded by its last row or column (the
+        writer stores even sides only)."""
         if self.gray:
             if image.ndim != 2:
                 raise OutputError(f"{self.path}: a gray video takes 2-D frames, not shape {image.shape}")
         elif image.ndim == 2:
             image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+        if image.shape[0] % 2 or image.shape[1] % 2:
+            # OpenCV's writer cuts odd sides to even: pad with the edge instead, so nothing
+            # of the picture is lost (``size`` is what is stored)
+            pad = ((0, image.shape[0] % 2), (0, image.shape[1] % 2)) + ((0, 0),) * (image.ndim - 2)
+            image = np.pad(image, pad, mode="edge")
         h, w = image.shape[:2]
         if self._writer is None:
             fourcc = cv2.VideoWriter_fourcc(*CODECS[self.codec][0])
