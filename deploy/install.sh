@@ -55,21 +55,35 @@ Options:
 EOF
 }
 
+value() {
+    # The value of option $1, given as $2: missing, or another option, is a usage error
+    # (`--prefix --dry-run` would otherwise install for real into a folder "--dry-run").
+    if [ $# -lt 2 ] || [ -z "$2" ] || [ "${2#-}" != "$2" ]; then
+        echo "install.sh: $1 needs a value (see --help)" >&2
+        exit 2
+    fi
+    printf '%s' "$2"
+}
+
 while [ $# -gt 0 ]; do
     case "$1" in
         --dry-run) DRY_RUN=1 ;;
-        --prefix) PREFIX="$2"; shift ;;
-        --user) SERVICE_USER="$2"; shift ;;
-        --opencl) OPENCL="$2"; shift ;;
+        --prefix) PREFIX="$(value "$@")"; shift ;;
+        --user) SERVICE_USER="$(value "$@")"; shift ;;
+        --opencl) OPENCL="$(value "$@")"; shift ;;
         --depthai) DEPTHAI=1 ;;
-        --python) PYTHON="$2"; shift ;;
+        --python) PYTHON="$(value "$@")"; shift ;;
         --start) START=1 ;;
-        --source) SRC="$2"; shift ;;
-        --udev-dir) UDEV_DIR="$2"; shift ;;
+        --source) SRC="$(value "$@")"; shift ;;
+        --udev-dir) UDEV_DIR="$(value "$@")"; shift ;;
         -h|--help) usage; exit 0 ;;
         *) echo "install.sh: unknown option '$1' (see --help)" >&2; exit 2 ;;
     esac
     shift
+done
+for dir in "$PREFIX" "$UDEV_DIR"; do
+    # (the unit's ExecStart= must be an absolute path, and the rule's folder is the system's)
+    case "$dir" in /*) ;; *) echo "install.sh: $dir: give an absolute path (--prefix, --udev-dir)" >&2; exit 2 ;; esac
 done
 case "$OPENCL" in pip|apt|vendor) ;; *) echo "install.sh: --opencl must be pip, apt or vendor" >&2; exit 2 ;; esac
 [ -f "$SRC/pyproject.toml" ] || { echo "install.sh: $SRC is not an emdflow checkout (no pyproject.toml)" >&2; exit 2; }

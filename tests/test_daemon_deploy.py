@@ -240,3 +240,22 @@ def test_install_updates_an_unedited_udev_rule_and_keeps_an_edited_one(tmp_path)
     assert f"{example}" in step                                                      # the new example beside it
     rule.write_text(shipped)
     assert "keeping" not in install()                                                # already current
+
+
+def test_install_refuses_an_option_without_its_value_and_relative_folders(tmp_path):
+    """`--prefix --dry-run` took "--dry-run" as the prefix and ran a real install; a
+    missing last value was bash's "unbound variable"; a relative prefix planned a unit
+    systemd rejects (ExecStart= must be absolute). Each is a usage error, nothing done."""
+    script = str(DEPLOY / "install.sh")
+    # (always a dry run first: a script that took "--dry-run" as the prefix again must not
+    # install anything on the machine running the tests)
+    for args in (["--dry-run", "--prefix", "--dry-run"], ["--dry-run", "--prefix"], ["--dry-run", "--user", ""],
+                 ["--dry-run", "--python"]):
+        result = subprocess.run(["bash", script, *args], capture_output=True, text=True, timeout=60)
+        assert result.returncode == 2, (args, result.stdout, result.stderr)
+        assert f"install.sh: {args[1]} needs a value" in result.stderr
+        assert "+ " not in result.stdout
+    for option in ("--prefix", "--udev-dir"):
+        result = _dry_run(option, "opt/emdflow")
+        assert result.returncode == 2 and "opt/emdflow: give an absolute path" in result.stderr
+    assert _dry_run("--prefix", tmp_path / "opt").returncode == 0
