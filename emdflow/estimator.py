@@ -50,7 +50,8 @@ class FlowEstimator:
     Parameters
     ----------
     width, height : int
-        Frame size in pixels. Every frame given to :meth:`update` must have this size.
+        Frame size in pixels, at least 3 wide and 4 high, at most 2^24 pixels. Every frame
+        given to :meth:`update` must have this size.
     backend : {'opencl', 'numpy'}
         ``'opencl'`` (default) runs the kernels in ``kernels/`` through pyopencl;
         ``'numpy'`` runs the reference implementation (exactly the same results, far
@@ -141,8 +142,12 @@ class FlowEstimator:
         for name, value in (("width", width), ("height", height)):
             if not _is_whole(value):
                 raise ValueError(f"{name} must be an integer number of pixels, got {value!r}")
-        if width < 3 or height < 3:
-            raise ValueError(f"frame size {width}x{height}: both sides must be at least 3 px")
+        # (Python ints from here: numpy integers would wrap in width * height)
+        width, height = int(width), int(height)
+        if width < 3 or height < 4:
+            # the texture statistic samples the even interior rows: a 3-row frame has none,
+            # and its summary would be blind for good
+            raise ValueError(f"frame size {width}x{height}: at least 3 px wide and 4 px high")
         if width * height > MAX_PIXELS:
             raise ValueError(f"frame size {width}x{height}: at most {MAX_PIXELS} pixels (e.g. 4096x4096) "
                              "are supported")

@@ -100,6 +100,9 @@ class FlowField:
         if not self.params.summary_evidence:
             raise ValueError(f"{caller}: this field has no summary evidence (its FlowEstimator was "
                              "made with summary_evidence=False, which computes the dense field only)")
+        if self.histogram is None:
+            raise ValueError(f"{caller}: this field has no summary evidence (its histogram is None: a "
+                             "FlowField made by hand needs one, as FlowEstimator.update gives it)")
 
     def _decode(self) -> None:
         self._u_code, self._v_code = self._packed.decode()

@@ -133,7 +133,8 @@ def _pick_device(choice, *, from_env: bool = False):
             raise ValueError(f"OpenCL device index {index}{origin} out of range: {len(devices)} device(s) found")
         return devices[index]
     for d in devices:
-        if choice.lower() in f"{d.platform.name} {d.name}".lower():
+        # (a part of the name as listed, "platform: device", or with a space between)
+        if any(choice.lower() in name.lower() for name in (device_label(d), f"{d.platform.name} {d.name}")):
             return d
     names = ", ".join(device_label(d) for d in devices)
     raise ValueError(f"OpenCL device {choice!r}{origin} not found among: {names}")

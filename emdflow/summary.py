@@ -232,7 +232,6 @@ EUVIP 2010; ``docs/spec/template-model.md`` §6 (facts the summary is built on).
 from __future__ import annotations
 
 import dataclasses
-import numbers
 import math
 from pathlib import Path
 
@@ -474,11 +473,16 @@ class SummaryOptions:
                 raise ValueError(f"SummaryOptions({name}={value!r}): expected a number "
                                  f"{'≥' if lo_in else '>'} {lo:g}"
                                  + (f" and {'≤' if hi_in else '<'} {hi:g}" if math.isfinite(hi) else ""))
+        for name in ("min_detections", "full_detections", "iterations", "guess_iterations"):
+            # (counts: 1.5 iterations passed the range test, then broke range() in summarize())
+            if not _is_whole(getattr(self, name)):
+                raise ValueError(f"SummaryOptions({name}={getattr(self, name)!r}): expected a whole number")
+        if not isinstance(self.likelihood, (bool, np.bool_)):  # ("no" counted as True)
+            raise ValueError(f"SummaryOptions(likelihood={self.likelihood!r}): expected True or False")
         if not (_is_whole(self.search_climbs) and 0 <= self.search_climbs <= 8):
             raise ValueError(f"SummaryOptions(search_climbs={self.search_climbs!r}): expected a whole number "
                              "from 0 to 8")
-        if self.top_speed is not None and not (isinstance(self.top_speed, numbers.Real)
-                                               and math.isfinite(self.top_speed) and self.top_speed > 0):
+        if self.top_speed is not None and not (_is_real(self.top_speed) and self.top_speed > 0):
             raise ValueError(f"SummaryOptions(top_speed={self.top_speed!r}): expected None or a number > 0 "
                              "(px/frame)")
 

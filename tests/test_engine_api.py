@@ -179,7 +179,8 @@ def test_parameters_accept_numpy_scalars_and_channel_sets_without_scale_1():
     assert np.isfinite(fields[-1].u).any()
 
 
-@pytest.mark.parametrize("size", [(2, 50), (50, 0), (50.5, 40), (4097, 4096), (1 << 17, 129)])
+@pytest.mark.parametrize("size", [(2, 50), (50, 0), (50, 3), (50.5, 40), (4097, 4096), (1 << 17, 129),
+                                  (np.uint16(4097), np.uint16(4096)), (np.int16(8000), np.int16(8000))])
 def test_bad_sizes(size):
     with pytest.raises(ValueError, match="frame size|integer"):
         emdflow.FlowEstimator(*size, backend="numpy")
@@ -219,6 +220,11 @@ def test_opencl_devices_and_device_choice(monkeypatch):
         emdflow.FlowEstimator(64, 48, backend="numpy", device=0)
     # numpy's integers are indices too (np.int64(0) used to be looked up as the name "0")
     assert emdflow.FlowEstimator(64, 48, device=np.int64(0)).device == devices[0][1]
+    # the name as listed chooses the device, from the call and from the environment (the
+    # "platform: device" label used to be matched against "platform device" only)
+    assert emdflow.FlowEstimator(64, 48, device=devices[0][1]).device == devices[0][1]
+    monkeypatch.setenv("EMDFLOW_OPENCL_DEVICE", devices[0][1])
+    assert emdflow.FlowEstimator(64, 48).device == devices[0][1]
     for bad in (True, 1.5, [0]):
         with pytest.raises(TypeError, match="expected an index"):
             emdflow.FlowEstimator(64, 48, device=bad)
@@ -263,6 +269,20 @@ def test_kernels_are_installed_with_the_package():
 
         assert "site-packages" in emdflow.__file__, emdflow.__file__
         assert importlib.resources.files("emdflow.kernels").joinpath("evd.cl").is_file()
+
+
+def test_a_hand_made_field_without_a_histogram_is_a_clear_error():
+    """FlowField is public: one made by hand without the evidence summarize() reads says
+    so (it was an AttributeError from inside summarize)."""
+    from emdflow.params import EngineParams
+    from emdflow.reference import STAT_FIRST_CHANGED
+
+    params = EngineParams()
+    z = np.zeros((48, 64), np.int8)
+    field = emdflow.FlowField(z, z, np.zeros(STAT_FIRST_CHANGED + len(params.channels), np.int64), None,
+                              params, 5)
+    with pytest.raises(ValueError, match=r"summarize\(\): this field has no summary evidence \(its histogram"):
+        emdflow.summarize(field)
 
 
 @pytest.mark.parametrize("backend", ["opencl", "numpy"])
@@ -388,3 +408,23 @@ def test_a_device_without_a_context_is_passed_over(monkeypatch, caplog):
     calls.clear()
     with pytest.raises(opencl_backend.KernelBuildError, match="no OpenCL context on .*DEVICE_NOT_AVAILABLE"):
         emdflow.FlowEstimator(64, 48)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_the_readme_usage_example_prints_what_its_comments_say(backend, capsys):
+    """The README's first example runs as written and prints the values its comments
+    quote (its quality went stale once, unnoticed)."""
+    import re
+    from pathlib import Path
+
+    readme = Path(__file__).resolve().parents[1] / "README.md"
+    if not readme.is_file():
+        pytest.skip("no README.md beside the tests")
+    text = readme.read_text()
+    block = re.search(r"## The engine: `emdflow`\n\n```python\n(.*?)```", text, re.S)[1]
+    exec(compile(block.replace('backend="opencl"', f'backend="{backend}"'), "README.md", "exec"), {})
+    printed = capsys.readouterr().out.splitlines()
+    said = [line.split("#", 1)[1].strip() for line in block.splitlines() if line.startswith("print(")]
+    flow_x, flow_y, quality = printed[0].split()
+    assert said[0].startswith(f"{float(flow_x):.2f} {float(flow_y):.2f} {quality} ")
+    assert said[1].startswith(printed[1] + ":")
