@@ -229,8 +229,13 @@ def test_serial_port_that_disappears_and_comes_back(tmp_path):
         return proc
 
     def read_messages(seconds):
+        """What arrives for ``seconds`` after the first bytes (the daemon opens the port
+        only once its engine is built: seconds with an empty kernel cache), 60 s at most."""
         fd = os.open(reader_end, os.O_RDONLY | os.O_NOCTTY | os.O_NONBLOCK)
         drain = Drain(fd)
+        deadline = time.monotonic() + 60
+        while not drain.data and time.monotonic() < deadline:
+            time.sleep(0.05)
         time.sleep(seconds)
         data = drain.stop()
         os.close(fd)
@@ -256,7 +261,7 @@ def test_serial_port_that_disappears_and_comes_back(tmp_path):
         socat.terminate()
         socat.wait(5)
     assert daemon.returncode == 0, err[-3000:]
-    assert {"HEARTBEAT", "OPTICAL_FLOW"} <= {m.get_type() for m in before}
+    assert {"HEARTBEAT", "OPTICAL_FLOW"} <= {m.get_type() for m in before}, err[-3000:]
     assert {"HEARTBEAT", "OPTICAL_FLOW"} <= {m.get_type() for m in after}
     assert "reopened" in err and "Traceback" not in err
 
