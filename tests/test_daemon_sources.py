@@ -7,6 +7,7 @@ import math
 import os
 import re
 import sys
+import time
 
 import cv2
 import numpy as np
@@ -87,6 +88,38 @@ def test_video_source_says_when_a_file_stops_short(clip, tmp_path, caplog):
     assert 0 < len(got) < len(frames) - 2
     assert (f"cut.avi': decoding stopped after {len(got)} of the {len(frames)} frames it declares"
             in caplog.text)
+
+
+def test_a_paced_file_that_decodes_slower_than_real_time_keeps_up_by_skipping(tmp_path):
+    """``--realtime``: a file whose frames take longer to decode than they last (a
+    1280x800 120 fps recording on a small board) skips the frames it missed, like a
+    camera, by seeking past them. It decoded each skipped frame instead, so every read
+    fell further behind (0.1 fps and seconds of latency within a minute)."""
+    frames = flight_frames(400, width=32, height=24)
+    path = write_video(tmp_path / "fast.avi", frames, fps=100.0)
+
+    class SlowDecoder:  # the capture, decoding each frame in 25 ms (the period is 10 ms)
+        def __init__(self, cap):
+            self.cap = cap
+
+        def read(self):
+            time.sleep(0.025)
+            return self.cap.read()
+
+        def __getattr__(self, name):
+            return getattr(self.cap, name)
+
+    with open_source(f"video:{path}", realtime=True) as source:
+        source._cap = SlowDecoder(source._cap)
+        start = time.monotonic()
+        got = [source.read() for _ in range(16)]
+        elapsed = time.monotonic() - start
+    indices = [f.index for f in got]
+    gaps = [b - a for a, b in zip(indices, indices[1:])]
+    assert elapsed < 1.5, (elapsed, indices)      # ~16 x 25-35 ms; behind for good: seconds
+    assert max(gaps[4:]) <= 6, indices            # steady skips of ~3 frames, not growing ones
+    for f in got:                                 # the frames themselves, at their indices
+        assert np.array_equal(f.image, frames[f.index])
 
 
 def test_video_source_missing_file_named(tmp_path):

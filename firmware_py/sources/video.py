@@ -161,15 +161,35 @@ class VideoFileSource(FrameSource):
         self._decoded += bool(ok)
         return image if ok else None
 
+    def _skip(self, count: int) -> bool:
+        """Move ``count`` frames ahead (frames a camera would have dropped); False at the
+        end of a file that does not loop. By a seek, not by decoding them: a file that
+        decodes slower than real time fell further behind with every frame it decoded to
+        skip (0.1 fps after seconds, latency without bound)."""
+        if count == 1:
+            return self._grab() is not None
+        target = self._decoded + count
+        if self.declared_frames:
+            if target >= self.declared_frames:
+                if not self.loop:
+                    return False
+                target %= self.declared_frames
+        if self._cap.set(cv2.CAP_PROP_POS_FRAMES, target):
+            self._decoded = target
+            return True
+        for _ in range(count):  # a stream that cannot seek: decode past them
+            if self._grab() is None:
+                return False
+        return True
+
     def read(self) -> Frame | None:
         if self._cap is None:
             raise SourceError(f"video file {self.path!r}: not open")
         due_us = None
         if self._pacer:
             index, self.waited_us, due_us = self._pacer.next(self._index)
-            for _ in range(index - self._index):  # frames a camera would have dropped
-                if self._grab() is None:
-                    return None
+            if index > self._index and not self._skip(index - self._index):
+                return None
             self._index = index
         image = self._grab()
         if image is None:
