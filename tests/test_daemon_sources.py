@@ -152,24 +152,50 @@ def test_depthai_replay_same_frames_as_file(clip, request):
     assert first <= 5 and [f.index for f in got] == list(range(first, first + len(got)))  # no gaps
 
 
-def test_depthai_replay_host_imagemanip_resizes(clip, request):
+def test_depthai_replay_of_a_file_without_frames_ends(request, tmp_path):
+    """A file cut off inside its header decodes to nothing: the replay ends (the daemon
+    then stops with 'ended before its first frame', exit 2), where it raised 'no frame for
+    2 s' as if an OAK were lost and the daemon reopened the file for ever."""
+    pytest.importorskip("depthai")
+    if not run_isolated_from_native_crashes(request, timeout=60.0):
+        return
+    full = write_video(tmp_path / "full.mkv", flight_frames(30, width=160, height=120))
+    cut = tmp_path / "cut.mkv"
+    cut.write_bytes(full.read_bytes()[:3000])
+    try:
+        source = open_source(f"depthai-replay:{cut}")
+    except SourceError:
+        return  # (refused at open: as good)
+    try:
+        assert source.read() is None
+    finally:
+        source.close()
+
+
+@pytest.mark.parametrize("size", [(80, 60), (320, 240)], ids=["down", "up"])
+def test_depthai_replay_resizes_like_a_video_file(clip, request, size):
+    """The replay's frames are the video: source's, pixel for pixel, down and up: DepthAI's
+    host ImageManip resampled by nearest pixel (and darkened the last row and column when
+    enlarging), which halved the summary's quality on a noisy high-resolution file."""
     pytest.importorskip("depthai")
     if not run_isolated_from_native_crashes(request, timeout=30.0):
         return
     path, frames = clip
-    source = open_source(f"depthai-replay:{path}", width=80, height=60)
+    width, height = size
+    source = open_source(f"depthai-replay:{path}", width=width, height=height)
     try:
         frame = source.read()
     finally:
         source.close()
-    _check_frame(frame, 80, 60)
-    reference = cv2.resize(frames[frame.index], (80, 60), interpolation=cv2.INTER_AREA)
-    assert np.abs(frame.image.astype(int) - reference).mean() < 8  # same picture, DepthAI's resampler
+    _check_frame(frame, width, height)
+    with open_source(f"video:{path}", width=width, height=height) as video:
+        same = [f for f in (video.read() for _ in range(frame.index + 1))][-1]
+    assert same.index == frame.index and np.array_equal(frame.image, same.image)
 
 
 def test_depthai_replay_centre_crops_another_aspect_ratio_like_a_video_file(clip, request):
-    """A 160x120 file asked for at 80x80: DepthAI's ImageManip cuts the sides as the video
-    source does (not the default STRETCH, which scales x and y differently), and the source
+    """A 160x120 file asked for at 80x80: the replay cuts the sides as the video source
+    does (not DepthAI's default STRETCH, which scales x and y differently), and the source
     says so in crop_fraction, from which the daemon derives the focal length."""
     pytest.importorskip("depthai")
     if not run_isolated_from_native_crashes(request, timeout=30.0):

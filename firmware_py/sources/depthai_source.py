@@ -11,9 +11,10 @@ processing resolution into a host queue; :meth:`DepthAISource.read` is the same 
   sensor's 1280×800 (OV9282) or 640×480 (OV7251) image loses its sides or top and bottom,
   and :attr:`crop_fraction` says how much, from the first frame's source size (``open``
   waits for it), so a field of view in the configuration gives the right focal length;
-- replay (no device, ``Pipeline(False)``): ``ReplayVideo`` (GRAY8) → ``ImageManip`` run on
-  the host (centre crop to the w:h aspect ratio, resize to w×h, GRAY8; x and y scaled
-  alike, as the ``video:`` source does); the timestamp is ``sequence_number / file fps``.
+- replay (no device, ``Pipeline(False)``): ``ReplayVideo`` (GRAY8), then the ``video:``
+  source's centre crop to the w:h aspect ratio and area resize to w×h on the host (x and
+  y scaled alike); the timestamp is ``sequence_number / file fps``; no frame for several
+  frame periods is the file's end (a file is not a device that can be lost).
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ import math
 import numpy as np
 
 from ..clock import host_us
-from .base import Frame, FrameSource, SourceConfigError, SourceError
+from .base import Frame, FrameSource, SourceConfigError, SourceError, fit_to
 from .video import probe_video
 
 __all__ = ["DepthAISource", "MONO_SOCKETS"]
@@ -36,6 +37,8 @@ MONO_SOCKETS = ("CAM_B", "CAM_C")
 # to its fps, so "as fast as possible" is a high fps plus a blocking queue (back-pressure).
 _UNPACED_FPS = 10_000.0
 _GET_TIMEOUT_S = 2.0
+# a replay: the pipeline starts (and the file opens) before its first frame
+_FIRST_FRAME_TIMEOUT_S = 10.0
 
 
 def _import_depthai():
@@ -130,14 +133,11 @@ class DepthAISource(FrameSource):
         replay.setOutFrameType(dai.ImgFrame.Type.GRAY8)
         replay.setLoop(self.loop)
         replay.setFps(self.fps if self.realtime else _UNPACED_FPS)
-        manip = pipeline.create(dai.node.ImageManip)
-        manip.setRunOnHost(True)
-        # centre crop to the aspect ratio, like video: (the default STRETCH scales x and y
-        # differently, which the link's single focal length cannot describe)
-        manip.initialConfig.setOutputSize(self.width, self.height, dai.ImageManipConfig.ResizeMode.CENTER_CROP)
-        manip.initialConfig.setFrameType(dai.ImgFrame.Type.GRAY8)
-        replay.out.link(manip.inputImage)
-        return manip.out
+        # The file's own frames: the centre crop to the aspect ratio and the resize are the
+        # video: source's, on the host (_to_frame). DepthAI's host ImageManip resampled by
+        # nearest pixel (darkening the last row and column when enlarging): on a noisy
+        # 1280x960 recording scaled to 320x240 the summary's quality halved.
+        return replay.out
 
     def _start(self, dai):
         """Build and start the pipeline; returns (pipeline, output queue)."""
@@ -214,8 +214,16 @@ class DepthAISource(FrameSource):
 
     def _next(self):
         """The next message from the queue; None at the end of a replay."""
+        timeout = _GET_TIMEOUT_S
+        if not self.live:
+            # a file cannot be unplugged: no frame for several of its frame periods (or for
+            # longer before its first, while the pipeline starts) is its end. A lost device
+            # it is not: a file that decodes to nothing was reopened for ever, and a
+            # time-lapse below 0.5 fps never got past its first frame.
+            timeout = max(timeout, 3.0 / self.fps if self.realtime else 0.0,
+                          _FIRST_FRAME_TIMEOUT_S if self._index == 0 else 0.0)
         try:
-            msg = self._queue.get(timeout=_timedelta(_GET_TIMEOUT_S))
+            msg = self._queue.get(timeout=_timedelta(timeout))
         except Exception as exc:
             # The queue closes when a replay reaches the end of its file (the pipeline may
             # still report running for a moment), or when the device goes away.
@@ -224,7 +232,8 @@ class DepthAISource(FrameSource):
                 return None
             raise SourceError(f"{self.uri}: {exc or 'pipeline stopped'}") from None
         if msg is None:
-            if not self.live and not self._pipeline.isRunning():
+            if not self.live:
+                log.info("%s: no frame for %.1f s: the end of the file", self.uri, timeout)
                 return None
             raise SourceError(f"{self.uri}: no frame for {_GET_TIMEOUT_S:g} s")
         return msg
@@ -244,6 +253,7 @@ class DepthAISource(FrameSource):
         else:
             stamp = int(round(index * self._period_us))
             captured = received
+            image = fit_to(image, self.width, self.height)
         self._index += 1
         return Frame(image, stamp, captured, index)
 
