@@ -88,6 +88,13 @@ def test_video_source_says_when_a_file_stops_short(clip, tmp_path, caplog):
     assert 0 < len(got) < len(frames) - 2
     assert (f"cut.avi': decoding stopped after {len(got)} of the {len(frames)} frames it declares"
             in caplog.text)
+    # looped, it says so once, not at every rewind (a line per pass, for ever)
+    caplog.clear()
+    with open_source(f"video:{cut}", loop=True) as source:
+        looped = [source.read() for _ in range(4 * len(got))]
+        assert source.short_passes >= 3
+    assert all(f is not None for f in looped)
+    assert caplog.text.count("decoding stopped") == 1 and "looping over what decodes" in caplog.text
 
 
 def test_a_paced_file_that_decodes_slower_than_real_time_keeps_up_by_skipping(tmp_path):

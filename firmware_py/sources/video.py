@@ -130,6 +130,8 @@ class VideoFileSource(FrameSource):
         declared = cap.get(cv2.CAP_PROP_FRAME_COUNT)
         self.declared_frames = int(declared) if declared > 0 and math.isfinite(declared) else None
         self._decoded = 0  # frames decoded since the start of the file
+        #: passes over the file that stopped decoding short of its declared frames (warned once)
+        self.short_passes = 0
         if self._pacer:
             self._pacer.restart()
 
@@ -150,9 +152,13 @@ class VideoFileSource(FrameSource):
             self._decoded += 1
             return image
         if self.declared_frames is not None and self._decoded < self.declared_frames - _DECLARED_SLACK:
-            # OpenCV reports a stream that stops decoding like its end: say which it looks like
-            log.warning("video file %r: decoding stopped after %d of the %d frames it declares "
-                        "(cut off or corrupt?)", self.path, self._decoded, self.declared_frames)
+            # OpenCV reports a stream that stops decoding like its end: say which it looks
+            # like (once: a looped file would say it at every rewind)
+            self.short_passes += 1
+            if self.short_passes == 1:
+                log.warning("video file %r: decoding stopped after %d of the %d frames it declares "
+                            "(cut off or corrupt?)%s", self.path, self._decoded, self.declared_frames,
+                            "; looping over what decodes" if self.loop else "")
         if not self.loop:
             return None
         self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
