@@ -179,6 +179,32 @@ def test_depthai_replay_of_a_file_without_frames_ends(request, tmp_path):
         source.close()
 
 
+def test_a_paced_depthai_replay_drops_what_a_slow_reader_misses(request, tmp_path):
+    """``--realtime`` replay behaves like a camera: a reader slower than the file's frame
+    rate gets the newest frames (the ones it missed are skipped) and each frame's capture
+    time is when the replay released it. A blocking queue slowed the whole replay to the
+    reader's pace instead, with the latency shown near zero."""
+    pytest.importorskip("depthai")
+    if not run_isolated_from_native_crashes(request, timeout=60.0):
+        return
+    path = write_video(tmp_path / "clip.mkv", flight_frames(60, width=64, height=48), fps=50.0)
+    source = open_source(f"depthai-replay:{path}", realtime=True)
+    got, ages = [], []
+    try:
+        start = time.monotonic()
+        while (frame := source.read()) is not None and len(got) < 25:
+            got.append(frame)
+            ages.append(host_us() - frame.capture_host_us)
+            time.sleep(0.06)  # three frame periods of work per frame
+        elapsed = time.monotonic() - start
+    finally:
+        source.close()
+    indices = [f.index for f in got]
+    assert indices == sorted(indices) and max(b - a for a, b in zip(indices, indices[1:])) >= 2, indices
+    assert indices[-1] >= 1.5 * len(got)             # the file ran at its own rate, not the reader's
+    assert elapsed < 2.5 and max(ages) < 500_000     # fresh frames, the queue never builds up
+
+
 @pytest.mark.parametrize("size", [(80, 60), (320, 240)], ids=["down", "up"])
 def test_depthai_replay_resizes_like_a_video_file(clip, request, size):
     """The replay's frames are the video: source's, pixel for pixel, down and up: DepthAI's

@@ -149,8 +149,13 @@ class DepthAISource(FrameSource):
         else:
             pipeline = dai.Pipeline(False)  # host only, no device
             output = self._build_replay(dai, pipeline)
-            # File: back-pressure instead of dropping.
-            queue = output.createOutputQueue(maxSize=2, blocking=True)
+            if self.realtime:
+                # Paced file: a camera, which drops the frames a slow reader misses (a
+                # blocking queue slowed the whole replay below real time instead)
+                queue = output.createOutputQueue(maxSize=1, blocking=False)
+            else:
+                # File as fast as it is read: back-pressure instead of dropping.
+                queue = output.createOutputQueue(maxSize=2, blocking=True)
         pipeline.start()
         return pipeline, queue
 
@@ -247,13 +252,17 @@ class DepthAISource(FrameSource):
         index = int(msg.getSequenceNum())
         if self.live:
             stamp = int(msg.getTimestampDevice().total_seconds() * 1e6)
+        else:
+            stamp = int(round(index * self._period_us))
+            image = fit_to(image, self.width, self.height)
+        if self.live or self.realtime:
+            # host monotonic time (µs) the camera captured it, or the paced replay released
+            # it (when it was due): latency then counts any wait in the queue
             captured = int(msg.getTimestamp().total_seconds() * 1e6)
             if not (0 <= received - captured < 2_000_000):
                 captured = received
         else:
-            stamp = int(round(index * self._period_us))
             captured = received
-            image = fit_to(image, self.width, self.height)
         self._index += 1
         return Frame(image, stamp, captured, index)
 
