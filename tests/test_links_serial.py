@@ -117,6 +117,17 @@ def test_reader_that_stops_reading_drops_oldest_and_never_blocks(tmp_path):
         peer.close()
 
 
+def _service_until_open(link):
+    """Run the link's service (its reopen back-off) over ten simulated seconds, until its
+    port is open."""
+    now = host_us()
+    for k in range(1, 100):
+        link.service(now + k * 100_000)
+        if link.stats["port_open"]:
+            break
+    assert link.stats["port_open"] is True
+
+
 def test_missing_port_is_retried_not_raised(tmp_path):
     path = str(tmp_path / "ttyUSB-not-yet")
     link = open_link(LinkConfig(port=path, baud=57600, autopilot="ardupilot", focal_length_px=400.0))
@@ -125,12 +136,7 @@ def test_missing_port_is_retried_not_raised(tmp_path):
         assert path in link.stats["last_error"]
         FrameFeeder(link, fps=FPS).frames(20, flow_y=1.0)  # runs without a port
         peer = PtyPeer(path)
-        now = host_us()
-        for k in range(1, 100):
-            link.service(now + k * 100_000)
-            if link.stats["port_open"]:
-                break
-        assert link.stats["port_open"] is True
+        _service_until_open(link)
         messages = strict_parse(peer.read())
         assert messages and messages[0].get_type() == "HEARTBEAT"
         peer.close()
@@ -257,12 +263,7 @@ def test_a_port_another_link_holds_is_not_shared(tmp_path, caplog):
         FrameFeeder(second, fps=FPS).frames(20, flow_y=1.0)  # runs without the port
         assert second.stats["bytes_written"] == 0
         first.close()
-        now = host_us()
-        for k in range(1, 100):
-            second.service(now + k * 100_000)
-            if second.stats["port_open"]:
-                break
-        assert second.stats["port_open"] is True
+        _service_until_open(second)
         assert strict_parse(peer.read())[0].get_type() == "HEARTBEAT"
     finally:
         first.close()
