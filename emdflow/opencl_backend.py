@@ -123,8 +123,9 @@ def _device_choice(device):
 
 def _pick_device(choice, *, from_env: bool = False):
     """The device a non-automatic choice names: an index of ``list_devices()`` or a
-    case-insensitive part of its "platform device" name; ``from_env``: the choice is
-    EMDFLOW_OPENCL_DEVICE's (its errors say so: the variable is not in the call)."""
+    case-insensitive part of its name as listed ("platform: device") or of "platform
+    device"; ``from_env``: the choice is EMDFLOW_OPENCL_DEVICE's (its errors say so: the
+    variable is not in the call)."""
     devices = _all_devices()
     origin = " (EMDFLOW_OPENCL_DEVICE)" if from_env else ""
     if isinstance(choice, int) or choice.strip().isdigit():
@@ -670,9 +671,12 @@ class OpenCLEngine:
         if self.result_host is not None:
             events[-1].wait()
             host = self.result_host
-            # the bit planes stay in the result buffer (detached before it is reused); the
-            # statistics below are summed into new arrays anyway
+            # the bit planes stay in the result buffer (detached before it is reused; with
+            # one buffer there is no turn to wait for: copied); the statistics below are
+            # summed into new arrays anyway
             planes = host[: 4 * lay.out_words]
+            if len(self._results) == 1:
+                planes = planes.copy()
         else:
             host = np.empty(lay.result_bytes, np.uint8)
             events += (cl.enqueue_copy(q, host, self.result, is_blocking=True),)

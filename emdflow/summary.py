@@ -473,8 +473,8 @@ class SummaryOptions:
                 raise ValueError(f"SummaryOptions({name}={value!r}): expected a number "
                                  f"{'≥' if lo_in else '>'} {lo:g}"
                                  + (f" and {'≤' if hi_in else '<'} {hi:g}" if math.isfinite(hi) else ""))
-        for name in ("min_detections", "full_detections", "iterations", "guess_iterations"):
-            # (counts: 1.5 iterations passed the range test, then broke range() in summarize())
+        for name in ("iterations", "guess_iterations"):
+            # (loop counts: 1.5 iterations passed the range test, then broke range() in summarize())
             if not _is_whole(getattr(self, name)):
                 raise ValueError(f"SummaryOptions({name}={getattr(self, name)!r}): expected a whole number")
         if not isinstance(self.likelihood, (bool, np.bool_)):  # ("no" counted as True)

@@ -350,6 +350,15 @@ def test_result_buffers_are_read_in_place_and_held_codes_copied_out(monkeypatch)
             assert not any(np.shares_memory(clone.words, host) for host in hosts)
             assert all(np.array_equal(a, b) for a, b in zip(clone.decode(), (u_r, v_r)))
 
+    # with one result buffer the planes are copied out at once (no turn to wait for)
+    with monkeypatch.context() as patch:
+        patch.setattr(opencl_backend.OpenCLEngine, "RESULT_SLOTS", 1)
+        single = opencl_backend.OpenCLEngine(width, height, EngineParams())
+    held_single = [single.step_packed(frame)[0] for frame in frames[:8]]
+    reference = ReferenceEngine(width, height, EngineParams())
+    for codes, frame in zip(held_single, frames[:8]):
+        assert all(np.array_equal(a, b) for a, b in zip(codes.decode(), reference.step(frame)[:2]))
+
     # a decode in progress (holding the codes' lock) on the buffer the next frame takes
     held = kept[-slots]
     finished = threading.Event()

@@ -432,7 +432,7 @@ def test_line_ground_tables_are_their_own():
     ("overdispersion", math.nan), ("row_exponent", 0.0), ("iterations", 0), ("misfit_weight", -0.1),
     ("min_textured", math.inf), ("full_detections", "400"),
     ("search_climbs", -1), ("search_climbs", 9), ("search_climbs", 1.5), ("search_climbs", True),
-    ("iterations", 1.5), ("guess_iterations", 2.5), ("min_detections", 20.5), ("full_detections", 400.0),
+    ("iterations", 1.5), ("guess_iterations", 2.5),
     ("likelihood", "no"), ("likelihood", 0), ("top_speed", True),
 ])
 def test_summary_options_out_of_range_name_the_option(option, value):

@@ -155,6 +155,8 @@ class FrameSource:
         self._size = size
         self.height, self.width = (first.shape[:2] if size is None else (size[1], size[0]))
         self.fps = fps
+        #: the count the container declares (None if unknown), before --max-frames
+        self.declared_frames = frame_count if capture is not None else None
         if max_frames is not None:
             frame_count = max_frames if frame_count is None else min(frame_count, max_frames)
         self.frame_count = frame_count
@@ -200,8 +202,8 @@ class FrameSource:
         finally:
             with _quiet_native_stderr():
                 self._capture.release()
-        declared = self.frame_count
-        if image is None and declared and n + 2 < declared:  # (a container's count may be off by a frame)
+        declared = self.declared_frames
+        if image is None and declared and n + 2 < min(declared, limit):  # (a container's count may be off by a frame)
             print(f"emdflow: {self.path}: the video ended after {n} of the {declared} frames its container "
                   "declares (a cut-off or damaged file?)", file=sys.stderr)
 

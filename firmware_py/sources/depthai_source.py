@@ -14,7 +14,8 @@ processing resolution into a host queue; :meth:`DepthAISource.read` is the same 
 - replay (no device, ``Pipeline(False)``): ``ReplayVideo`` (GRAY8), then the ``video:``
   source's centre crop to the w:h aspect ratio and area resize to w×h on the host (x and
   y scaled alike); the timestamp is ``sequence_number / file fps``; no frame for several
-  frame periods is the file's end (a file is not a device that can be lost).
+  frame periods (2 s at least; 10 s before the first) is the file's end (a file is not a
+  device that can be lost).
 """
 
 from __future__ import annotations

@@ -25,6 +25,8 @@ __all__ = ["VideoFileSource", "probe_video", "is_gray_stream"]
 log = logging.getLogger("emdflowd.video")
 
 #: Frames a container's declared count may be off by without meaning a cut-off file.
+# frames skipped by decoding through them, more by a seek (its cost in decodes, measured)
+_SEEK_FRAMES = 24
 _DECLARED_SLACK = 2
 # Codec pixel formats (FFmpeg's raw tags, as CAP_PROP_CODEC_PIXEL_FORMAT reports them) that
 # OpenCV hands out as one 8-bit channel with CONVERT_RGB off: FFmpeg's GRAY8.
@@ -169,23 +171,24 @@ class VideoFileSource(FrameSource):
 
     def _skip(self, count: int) -> bool:
         """Move ``count`` frames ahead (frames a camera would have dropped); False at the
-        end of a file that does not loop. By a seek, not by decoding them: a file that
-        decodes slower than real time fell further behind with every frame it decoded to
-        skip (0.1 fps after seconds, latency without bound)."""
-        if count == 1:
-            return self._grab() is not None
+        end of a file that does not loop. A few are decoded through; more are passed by a
+        seek, which costs about as much as ``_SEEK_FRAMES`` decodes (OpenCV's FFmpeg seek
+        decodes forward from a frame about 16 before the target): a file that decodes
+        slower than real time then stays at a bounded rate, where decoding every frame it
+        missed put it further behind with every read (0.1 fps, seconds of latency)."""
+        if count <= _SEEK_FRAMES:
+            for _ in range(count):
+                if self._grab() is None:
+                    return False
+            return True
         target = self._decoded + count
         if self.declared_frames:
             if target >= self.declared_frames:
                 if not self.loop:
                     return False
                 target %= self.declared_frames
-        if self._cap.set(cv2.CAP_PROP_POS_FRAMES, target):
-            self._decoded = target
-            return True
-        for _ in range(count):  # a stream that cannot seek: decode past them
-            if self._grab() is None:
-                return False
+        self._cap.set(cv2.CAP_PROP_POS_FRAMES, target)
+        self._decoded = target
         return True
 
     def read(self) -> Frame | None:
