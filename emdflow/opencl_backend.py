@@ -646,8 +646,10 @@ class OpenCLEngine:
         self._set_states(7, int(self.theta_q))
         self._set_evd(5, t)
         self._set_evd(6, int(self.theta_q))
-        if len(self._results) > 1:
-            slot_index = self.t % len(self._results)
+        # (one result buffer, or one the host cannot read in place: no turns to take)
+        rotating = len(self._results) > 1
+        slot_index = self.t % len(self._results)
+        if rotating:
             self.result, self.result_host = self._results[slot_index]
             held = self._result_codes[slot_index]
             held = held() if held is not None else None
@@ -675,7 +677,7 @@ class OpenCLEngine:
             # one buffer there is no turn to wait for: copied); the statistics below are
             # summed into new arrays anyway
             planes = host[: 4 * lay.out_words]
-            if len(self._results) == 1:
+            if not rotating:
                 planes = planes.copy()
         else:
             host = np.empty(lay.result_bytes, np.uint8)
@@ -685,7 +687,7 @@ class OpenCLEngine:
             self.trace.append(events)
         self.t += 1
         codes = PackedCodes(lay.plane_rows(planes.view(np.uint32).reshape(2, 5, lay.OUT_PLANE)), lay.W)
-        if self.result_host is not None and len(self._results) > 1:
+        if rotating:
             self._result_codes[slot_index] = weakref.ref(codes)
         ints = host[lay.stats_offset :].view(np.int32)
         n_ch = len(lay.channels)

@@ -785,12 +785,11 @@ def run(args) -> int:
                         "rows are named dis)", 2)
     args.label = label
     args.plot = _plot_path(args)
-    for option, path in (("--csv", None if args.from_csv else args.csv), ("--plot", args.plot),
-                         ("--markdown", args.markdown)):
+    outputs = (("--csv", None if args.from_csv else args.csv), ("--plot", args.plot), ("--markdown", args.markdown))
+    for option, path in outputs:
         if path and (problem := output_problem(path) or (option == "--plot" and plot_type_problem(path))):
             raise ToolError(f"{option} {path}: {problem}", 2)
-    refuse_same_outputs((("--from-csv", args.from_csv), ("--csv", None if args.from_csv else args.csv),
-                         ("--plot", args.plot), ("--markdown", args.markdown)))
+    refuse_same_outputs((("--from-csv", args.from_csv), *outputs))
 
     if args.from_csv:
         try:

@@ -25,9 +25,9 @@ __all__ = ["VideoFileSource", "probe_video", "is_gray_stream"]
 log = logging.getLogger("emdflowd.video")
 
 #: Frames a container's declared count may be off by without meaning a cut-off file.
-# frames skipped by decoding through them, more by a seek (its cost in decodes, measured)
-_SEEK_FRAMES = 24
 _DECLARED_SLACK = 2
+#: Missed frames decoded through; more are passed by a seek (what one costs in decodes).
+_SEEK_FRAMES = 24
 # Codec pixel formats (FFmpeg's raw tags, as CAP_PROP_CODEC_PIXEL_FORMAT reports them) that
 # OpenCV hands out as one 8-bit channel with CONVERT_RGB off: FFmpeg's GRAY8.
 _GRAY8_TAGS = {cv2.VideoWriter_fourcc(*tag) for tag in ("Y800", "GREY", "Y8  ")}
@@ -182,11 +182,10 @@ class VideoFileSource(FrameSource):
                     return False
             return True
         target = self._decoded + count
-        if self.declared_frames:
-            if target >= self.declared_frames:
-                if not self.loop:
-                    return False
-                target %= self.declared_frames
+        if self.declared_frames and target >= self.declared_frames:
+            if not self.loop:
+                return False
+            target %= self.declared_frames
         self._cap.set(cv2.CAP_PROP_POS_FRAMES, target)
         self._decoded = target
         return True
