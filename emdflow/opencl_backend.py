@@ -566,6 +566,11 @@ class OpenCLEngine:
         self._result_codes = [None] * len(self._results)
         #: the latest frame's result buffer and its memory as a host array (a CPU device), or None
         self.result, self.result_host = self._results[0]
+        # views of each result buffer's host memory, made once (a frame's host work after
+        # the kernels runs on caches they have just emptied: ~3x slower than warm)
+        self._result_views = [self._views(host) if host is not None else None for _, host in self._results]
+        #: pixels the contrast statistic samples (the adaptive threshold's divisor)
+        self._contrast_samples = params.contrast_samples(width, height)
         #: names of the commands of one frame, in the order of ``trace`` entries (no
         #: upload / download command where the host shares the buffer's memory)
         skipped = {"upload"} if self.frame_host is not None else set()
@@ -609,6 +614,21 @@ class OpenCLEngine:
         #: set to a list to collect each frame's command events (needs a profiling queue)
         self.trace = None
         self.reset()
+
+    def _views(self, host: np.ndarray) -> tuple:
+        """``(planes, counters, positions, histograms)`` views of a result buffer's host
+        memory: the bit planes as (2 axes, 5 planes, H, NW) words, the counter copies
+        (COUNTER_COPIES, counters) and the position and histogram copies (int32)."""
+        lay = self.layout
+        planes = lay.plane_rows(host[: 4 * lay.out_words].view(np.uint32).reshape(2, 5, lay.OUT_PLANE))
+        ints = host[lay.stats_offset :].view(np.int32)
+        counters = ints[: lay.pos_offset].reshape(lay.COUNTER_COPIES, lay.SLOT_INTS)[:, : lay.n_fixed]
+        if not self.params.summary_evidence:
+            return planes, counters, None, None
+        positions = ints[lay.pos_offset : lay.hist_offset].reshape(lay.POS_COPIES, lay.pos_size)
+        hist = ints[lay.hist_offset : lay.hist_offset + lay.HIST_COPIES * lay.hist_size].reshape(
+            lay.HIST_COPIES, lay.hist_size)
+        return planes, counters, positions, hist
 
     def reset(self) -> None:
         """Forget the history: zero every state plane (and their padding)."""
@@ -671,38 +691,34 @@ class OpenCLEngine:
             launch(q, self._k_evd, self._g_words, self._l_words),
         )
         if self.result_host is not None:
+            views = self._result_views[slot_index]
             events[-1].wait()
-            host = self.result_host
             # the bit planes stay in the result buffer (detached before it is reused; with
             # one buffer there is no turn to wait for: copied); the statistics below are
             # summed into new arrays anyway
-            planes = host[: 4 * lay.out_words]
-            if not rotating:
-                planes = planes.copy()
+            planes = views[0] if rotating else views[0].copy()
         else:
             host = np.empty(lay.result_bytes, np.uint8)
             events += (cl.enqueue_copy(q, host, self.result, is_blocking=True),)
-            planes = host[: 4 * lay.out_words]
+            views = self._views(host)
+            planes = views[0]
         if self.trace is not None:  # profiling (emdflow bench --stages)
             self.trace.append(events)
         self.t += 1
-        codes = PackedCodes(lay.plane_rows(planes.view(np.uint32).reshape(2, 5, lay.OUT_PLANE)), lay.W)
+        codes = PackedCodes(planes, lay.W)
         if rotating:
             self._result_codes[slot_index] = weakref.ref(codes)
-        ints = host[lay.stats_offset :].view(np.int32)
-        n_ch = len(lay.channels)
+        _, counters, position_copies, hist_copies = views
         # (the counters in int64 before they are added up: the contrast sum of a large
         # frame passes 2^31, each copy's share of it does not)
-        stats = ints[: lay.pos_offset].reshape(lay.COUNTER_COPIES, lay.SLOT_INTS)[:, : lay.n_fixed].sum(
-            axis=0, dtype=np.int64)
+        stats = counters.sum(axis=0, dtype=np.int64)
         self.last_theta_q = self.theta_q
-        self.theta_q = self.params.next_threshold_q(int(stats[STAT_CONTRAST]),
-                                                    self.params.contrast_samples(lay.W, lay.H))
+        self.theta_q = self.params.next_threshold_q(int(stats[STAT_CONTRAST]), self._contrast_samples)
         if not self.params.summary_evidence:
             return codes, stats, None, None
-        positions = _fold_copies(ints[lay.pos_offset : lay.hist_offset].reshape(lay.POS_COPIES, lay.pos_size))
-        copies = ints[lay.hist_offset :].reshape(lay.HIST_COPIES, lay.hist_size)
-        hist = _fold_copies(copies).reshape(self.params.evidence_axes, 2 * n_ch, self.params.histogram_bins)
+        n_ch = len(lay.channels)
+        positions = _fold_copies(position_copies)
+        hist = _fold_copies(hist_copies).reshape(self.params.evidence_axes, 2 * n_ch, self.params.histogram_bins)
         return codes, stats, hist, positions.reshape(2, 2 * n_ch, POSITION_BINS)
 
     def step(self, frame: np.ndarray):
@@ -716,6 +732,15 @@ class OpenCLEngine:
         """(H, NW) uint32 words -> (H, W) bool, bit j of word i = pixel 32 i + j."""
         bits = np.unpackbits(words.astype("<u4").view(np.uint8), axis=1, bitorder="little")
         return bits[:, : self.layout.W].astype(bool)
+
+    def debug_prefiltered(self) -> np.ndarray:
+        """The last frame's prefiltered image P as (H, W) uint8 (like ``reference.prefilter``)."""
+        lay = self.layout
+        p = np.empty(self.p_buf.size, np.uint8)
+        self._cl.enqueue_copy(self.queue, p, self.p_buf)
+        slot = (self.t - 1) % lay.P_SLOTS
+        rows = p[slot * lay.P_SIZE : (slot + 1) * lay.P_SIZE].reshape(lay.H, lay.PSTRIDE)
+        return rows[:, lay.PPAD : lay.PPAD + lay.W].copy()
 
     def debug_states(self) -> list:
         """Ternary states of the last frame per channel, as int8 arrays (like the reference)."""

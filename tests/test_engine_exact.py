@@ -108,6 +108,24 @@ def test_portable_kernels_are_standard_opencl_c_1_2(monkeypatch, tmp_path, model
     assert result.returncode == 0 and "warning" not in result.stderr, result.stderr[-2000:]
 
 
+@pytest.mark.parametrize("prefilter_size", [11, 3, 41])
+@pytest.mark.parametrize("width", [3, 13, 26, 47, 70])
+def test_prefilter_at_the_frame_edges(width, prefilter_size):
+    """The prefiltered image equals the reference's (clamped reads at the frame edges),
+    also where one 16-column strip holds both edges and where the radius (20 px at 41
+    taps) spans more than one strip."""
+    height = 9
+    params = EngineParams(prefilter_size=prefilter_size)
+    engine = opencl_backend.OpenCLEngine(width, height, params)
+    rng = np.random.default_rng(width + prefilter_size)
+    for _ in range(2):
+        # extreme values at the edge columns: a lane that read past the frame shows
+        frame = rng.integers(0, 256, (height, width), dtype=np.uint8)
+        frame[:, 0], frame[:, -1] = 255, 0
+        engine.step(frame)
+        assert np.array_equal(engine.debug_prefiltered(), prefilter(frame, params.weights))
+
+
 @pytest.mark.parametrize("size", [(661, 37), (1283, 21)])
 def test_wide_frames(size):
     # from 640 px the summary's evidence samples every 2nd (from 1280 every 4th) column
