@@ -352,6 +352,19 @@ def test_denser_evidence_samples_more_and_keeps_the_field():
     assert math.hypot(s.flow_x - flow[0], s.flow_y - flow[1]) < 0.1 * math.hypot(*flow)
 
 
+@pytest.mark.parametrize("texture", ["gravel", "brick"])
+def test_static_low_contrast_scene_is_static_with_the_adaptive_threshold(texture):
+    """A hovering drone over low-contrast ground: at a quarter of the contrast the
+    adaptive threshold sits at its floor and sensor noise (σ = 2) lights 0.7 % of the
+    scale-1 receptors. The scene is still static (flow 0 with quality), not a motion the
+    detector cannot follow (quality 0 on every frame, which the autopilot drops)."""
+    est = emdflow.FlowEstimator(W, H, backend="opencl", **MODELS["extended"])
+    flight = CameraFlight(texture, width=W, height=H, flow=(0.0, 0.0), noise_sigma=2.0, contrast=0.25, seed=2)
+    summaries = [summarize(est.update(flight.render(t))) for t in range(16)][12:]
+    for s in summaries:
+        assert s.static and s.quality > 0 and (s.flow_x, s.flow_y) == (0.0, 0.0)
+
+
 def test_real_static_scene():
     est = emdflow.FlowEstimator(W, H, backend="opencl")
     flight = CameraFlight("brick", width=W, height=H, flow=(0.0, 0.0), noise_sigma=2.0, seed=2)
@@ -433,6 +446,7 @@ def test_line_ground_tables_are_their_own():
     ("min_textured", math.inf), ("full_detections", "400"),
     ("search_climbs", -1), ("search_climbs", 9), ("search_climbs", 1.5), ("search_climbs", True),
     ("iterations", 1.5), ("guess_iterations", 2.5),
+    ("min_detections", 0), ("min_textured", 0.0), ("static_noise_ratio", -0.1),
     ("likelihood", "no"), ("likelihood", 0), ("top_speed", True),
 ])
 def test_summary_options_out_of_range_name_the_option(option, value):
