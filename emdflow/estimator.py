@@ -183,6 +183,14 @@ class FlowEstimator:
             self._engine = OpenCLEngine(self.width, self.height, self.params, device=device)
         self._frames = 0
         self._last_step = None
+        # Frames flagged from a brightness step on: a delay-D channel's templates read its
+        # states of t - 2D, t - D and t, so the step sits in them for 3D frames. Without
+        # brightness compensation all of it reads as motion (0.5 px/frame read 0.60-0.66 at
+        # quality 116-236 four to eleven frames after a x1.3 step, delays 1, 2, 4): the
+        # whole 3 max(D). With it the delayed channels' share is taken out (0.49 at quality
+        # 238-241 over the same frames, one frame of 0.39 after a x0.7 step), and dropping
+        # them for 12 frames would blind the extended model's hovering channels: 3.
+        self._step_frames = 3 if self.params.brightness_compensation else 3 * self.params.max_delay
 
     def _check(self, frame) -> np.ndarray:
         expected = f"a 2-D uint8 array of shape ({self.height}, {self.width})"
@@ -225,8 +233,9 @@ class FlowEstimator:
             packed, stats, hist, positions = _empty_output(self.height, self.width, stats, hist, positions)
         if _is_brightness_step(stats, self.width * self.height):
             self._last_step = self._frames
-        # the step's states sit in the templates of this frame and the next two
-        in_templates = self._last_step is not None and self._frames - self._last_step < 3
+        # the step's states sit in the templates of this frame and the next two (see
+        # step_frames: longer for uncompensated delays)
+        in_templates = self._last_step is not None and self._frames - self._last_step < self._step_frames
         return FlowField(None, None, stats, hist, self.params, self._frames, positions=positions,
                          exposure_step=in_templates, packed=packed, shape=(self.height, self.width))
 

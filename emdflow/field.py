@@ -61,8 +61,9 @@ class FlowField:
         Frames seen since the last reset, counting this one (1 for the first frame).
     exposure_step : bool
         A global brightness step (auto-exposure, lights) happened in this frame or one of
-        the two before — it is inside the velocity templates, so the detections are not
-        to be trusted (the summary reports quality 0).
+        the two before (with delays above 1 and no brightness compensation: the
+        3 max(delays) - 1 before) — it is inside the velocity templates, so the detections
+        are not to be trusted (the summary reports quality 0).
     ready : bool
         True once the detector's history is full (before that, everything is NaN).
     """

@@ -79,9 +79,10 @@ Method
    See :class:`SummaryOptions`.
 
 Blank, saturated or texture-less frames give flow 0 with quality 0, and so do the three
-frames whose templates contain a global brightness step (an auto-exposure jump; see
+frames (more with uncompensated delays) whose templates contain a global brightness step (an auto-exposure jump; see
 :attr:`FlowField.exposure_step`). A *static* textured
-scene — texture present, almost no receptor changes at scale 1, so the image moves less
+scene — texture present, almost no receptor changes at scale 1 (or only sensor noise's),
+so the image moves less
 than the detector's floor of about 0.5 px/frame — is a valid measurement: flow 0 with a
 quality set by the texture.
 

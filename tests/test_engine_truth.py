@@ -273,6 +273,31 @@ def test_a_gain_step_is_caught_with_brightness_compensation(gain):
     assert [t for t, f in enumerate(flagged) if f] == [16, 17, 18]
 
 
+@pytest.mark.parametrize("compensation", [False, True])
+def test_a_step_is_flagged_while_it_sits_in_the_delayed_templates(compensation):
+    """A delay-D channel's templates hold a brightness step for 3D frames. Without
+    brightness compensation the flag covers all of them (the delay-4 channels read the
+    step as motion: 0.5 px/frame read 0.60-0.66 at high quality); with it, which takes the
+    step out of the delayed channels too, the three frames of the one-frame channels."""
+    from emdflow.params import MODELS
+
+    params = dict(MODELS["extended"], brightness_compensation=compensation)
+    est = emdflow.FlowEstimator(160, 120, **params)
+    flight = CameraFlight("gravel", width=160, height=120, flow=(0.5, 0.0), noise_sigma=2.0, seed=0)
+    flagged = []
+    for t in range(30):
+        frame = flight.render(t).astype(np.float64) * (1.3 if t >= 16 else 1.0)
+        field = est.update(np.clip(frame, 0, 255).astype(np.uint8))
+        s = emdflow.summarize(field)
+        if field.exposure_step:
+            flagged.append(t)
+            assert s.quality == 0
+        elif t >= 16:
+            # the frames after the flag read the flight, not the step
+            assert s.quality > 0 and abs(s.flow_x - 0.5) < 0.1 * 0.5 + 0.06
+    assert flagged == (list(range(16, 19)) if compensation else list(range(16, 28)))
+
+
 def test_stochastic_calibration_textures():
     """The extended model's calibration also flies over 1/f^beta noise textures and a
     tissue section (ground is rougher than the bundled photographs): deterministic per
