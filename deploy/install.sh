@@ -85,6 +85,14 @@ for dir in "$PREFIX" "$UDEV_DIR"; do
     # (the unit's ExecStart= must be an absolute path, and the rule's folder is the system's)
     case "$dir" in /*) ;; *) echo "install.sh: $dir: give an absolute path (--prefix, --udev-dir)" >&2; exit 2 ;; esac
 done
+# The prefix goes into the unit's ExecStart= through sed (which reads & # \ in it) and systemd
+# (which splits at whitespace, expands % and $, and parses quotes): refused, not written broken.
+case "$PREFIX" in
+    *[[:space:]\&\#\\%\$\"\']*)
+        echo "install.sh: --prefix '$PREFIX': the unit's ExecStart= cannot hold whitespace or any of" \
+            "& # \\ % \$ \" ' in the path: choose another folder" >&2
+        exit 2 ;;
+esac
 case "$OPENCL" in pip|apt|vendor) ;; *) echo "install.sh: --opencl must be pip, apt or vendor" >&2; exit 2 ;; esac
 [ -f "$SRC/pyproject.toml" ] || { echo "install.sh: $SRC is not an emdflow checkout (no pyproject.toml)" >&2; exit 2; }
 

@@ -119,7 +119,20 @@ def main(argv: list[str] | None = None) -> int:
     if args.demo:
         from .demo import run_demo
 
-        return run_demo(frames=args.frames, config_path=args.config, source=args.source)
+        # The demo's link is its own (MAVLink for ArduPilot into a pseudo-terminal it reads
+        # back with pymavlink): a port, baud rate, autopilot or protocol given for it would be
+        # ignored, so they are refused rather than dropped. (--realtime is what the demo does
+        # anyway; --log-level applies above; --focal-length-px is the flight's, passed on.)
+        given = [flag for flag, value in (("--serial", args.serial), ("--baud", args.baud),
+                                          ("--autopilot", args.autopilot), ("--protocol", args.protocol))
+                 if value is not None]
+        if given:
+            log.error("command line: %s: not with --demo, which makes its own link (MAVLink for ArduPilot "
+                      "into a pseudo-terminal); leave %s out, or run emdflowd without --demo",
+                      ", ".join(given), "it" if len(given) == 1 else "them")
+            return EXIT_CONFIG
+        return run_demo(frames=args.frames, config_path=args.config, source=args.source,
+                        focal_length_px=args.focal_length_px)
     try:
         config = load_config(args.config)
         _apply_flags(config, args)

@@ -5,7 +5,8 @@ in real time) goes through the OpenCL engine and the MAVLink link into a pseudo-
 the demo reads the other end with pymavlink, as a flight controller would, and prints one
 line per second: frame rate, message rate, latency (capture → serial write), the flow rate
 received on the wire next to the flight's true rate, and the quality. It stops after 10 s
-(or ``--frames N``) with a summary line; exit 0 when flow messages arrived with valid CRCs.
+(or ``--frames N``) with a summary line; exit 0 when flow messages arrived with valid CRCs,
+2 when the source delivered no frame at all (as for a source that cannot be opened).
 """
 
 from __future__ import annotations
@@ -70,8 +71,9 @@ def _fmt(x: float, width: int = 6) -> str:
 
 def run_demo(*, frames: int | None = None, config_path: str | None = None, source: str | None = None,
              seconds: float = DEMO_SECONDS, backend: str | None = None,
-             size: tuple[int, int] | None = None, out=None) -> int:
-    """Run the demo; returns the exit code (0: telemetry received and shown).
+             size: tuple[int, int] | None = None, focal_length_px: float | None = None, out=None) -> int:
+    """Run the demo; returns the exit code (0: telemetry received and shown, or stdout
+    closed by its reader, e.g. ``| head``).
 
     Parameters
     ----------
@@ -87,14 +89,31 @@ def run_demo(*, frames: int | None = None, config_path: str | None = None, sourc
         Engine backend instead of the configuration's (default ``opencl``).
     size : (int, int), optional
         Processing width and height, px, instead of the configuration's (default 320×240).
+    focal_length_px : float, optional
+        Focal length at the processed size, px, instead of the configuration's
+        (``--focal-length-px``).
     out : file, optional
         Where the table goes (default stdout).
     """
+    out = out or sys.stdout
+    try:
+        return _run_demo(frames=frames, config_path=config_path, source=source, seconds=seconds,
+                         backend=backend, size=size, focal_length_px=focal_length_px, out=out)
+    except BrokenPipeError:
+        # the reader went away (`emdflowd --demo | head -1`): a stop like Ctrl-C, not a crash;
+        # _run_demo has stopped the daemon. Python's flush of stdout at exit would fail again.
+        if out is sys.stdout:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+            os.close(devnull)
+        return 0
+
+
+def _run_demo(*, frames, config_path, source, seconds, backend, size, focal_length_px, out) -> int:
     from .daemon import Daemon
     from .sources import SourceError
     from .sources.synthetic import SyntheticSource
 
-    out = out or sys.stdout
     master = slave = None
     try:
         config = load_config(config_path)
@@ -106,6 +125,8 @@ def run_demo(*, frames: int | None = None, config_path: str | None = None, sourc
         if size:
             config.set("source", "width", int(size[0]))
             config.set("source", "height", int(size[1]))
+        if focal_length_px is not None:
+            config.set("optics", "focal_length_px", focal_length_px, origin="command line")
         if frames is not None and frames < 1:
             raise ConfigError(f"command line: --frames {frames}: must be >= 1")
         master, slave = os.openpty()
@@ -116,7 +137,13 @@ def run_demo(*, frames: int | None = None, config_path: str | None = None, sourc
         config.set("link", "baud", DEMO_BAUD)
         config.set("link", "autopilot", "ardupilot")
         config.validate()
-    except ConfigError as exc:
+        truth_source = None
+        if config.source.uri.startswith("synthetic:"):
+            # (a texture that does not exist fails here first: exit 2 like emdflowd's, no traceback)
+            truth_source = SyntheticSource(config.source.uri.partition(":")[2],
+                                           width=config.source.width or 320,
+                                           height=config.source.height or 240, fps=config.source.fps or 100.0)
+    except (ConfigError, SourceError) as exc:
         log.error("%s", exc)
         for fd in (master, slave):
             if fd is not None:
@@ -124,11 +151,6 @@ def run_demo(*, frames: int | None = None, config_path: str | None = None, sourc
         return 2
     fell_back = not backend and config.engine.backend == "opencl" and _fall_back_without_opencl(config, out)
     daemon = Daemon(config)
-    truth_source = None
-    if config.source.uri.startswith("synthetic:"):
-        truth_source = SyntheticSource(config.source.uri.partition(":")[2],
-                                       width=config.source.width or 320,
-                                       height=config.source.height or 240, fps=config.source.fps or 100.0)
     result: dict = {}
 
     def _run():
@@ -144,16 +166,20 @@ def run_demo(*, frames: int | None = None, config_path: str | None = None, sourc
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     reader = _WireReader(master)
     thread.start()
-    print(f"emdflowd demo: {config.source.uri} {config.source.width or 320}x{config.source.height or 240} "
-          f"-> {config.engine.backend} engine -> MAVLink OPTICAL_FLOW on {config.link.port} "
-          f"-> pymavlink; {'%d frames' % frames if frames else '%g s' % seconds}", file=out, flush=True)
-    daemon.running.wait(120.0)  # the first OpenCL build may take a while
     start = time.monotonic()
-    if thread.is_alive():
-        print(_HEADER, file=out, flush=True)
-    next_row = start + 1.0
-    last_processed, last_msgs, last_latency = 0, 0, 0
-    try:
+    try:  # (a print may raise BrokenPipeError: the daemon is stopped below all the same)
+        daemon.running.wait(120.0)  # the first OpenCL build may take a while
+        start = time.monotonic()
+        if daemon.width and "error" not in result:
+            # after the source is made: its size is the one processed (a video's own, unless
+            # [source] width and height are set), not the flight's default
+            print(f"emdflowd demo: {config.source.uri} {daemon.width}x{daemon.height} "
+                  f"-> {config.engine.backend} engine -> MAVLink OPTICAL_FLOW on {config.link.port} "
+                  f"-> pymavlink; {'%d frames' % frames if frames else '%g s' % seconds}", file=out, flush=True)
+        if thread.is_alive():
+            print(_HEADER, file=out, flush=True)
+        next_row = start + 1.0
+        last_processed, last_msgs, last_latency = 0, 0, 0
         while not stop.is_set() and thread.is_alive():
             reader.poll(0.02)
             now = time.monotonic()
@@ -182,7 +208,8 @@ def run_demo(*, frames: int | None = None, config_path: str | None = None, sourc
         print(f"demo failed: {error}", file=out, flush=True)
         # as emdflowd's: a source or setting that cannot work is a usage error (2), not a failure
         return 2 if isinstance(error, (ConfigError, SourceError)) else 1
-    return _summary(end - start, reader, daemon, truth_source, out, result.get("code", 1), fell_back)
+    return _summary(end - start, reader, daemon, truth_source, out, result.get("code", 1), fell_back,
+                    config.source.uri)
 
 
 def _fall_back_without_opencl(config, out) -> bool:
@@ -235,7 +262,7 @@ def _row(t, processed, msgs, reader, daemon, truth_source, latencies) -> str:
             f"{_fmt(fx, 9)},{_fmt(fy, 9)}  {_fmt(tx, 7)},{_fmt(ty, 7)}  {q:7d}")
 
 
-def _summary(elapsed, reader, daemon, truth_source, out, code, fell_back=False) -> int:
+def _summary(elapsed, reader, daemon, truth_source, out, code, fell_back=False, uri="") -> int:
     from .daemon import _percentiles
 
     p50, p99 = _percentiles(daemon.latency_snapshot())
@@ -249,4 +276,10 @@ def _summary(elapsed, reader, daemon, truth_source, out, code, fell_back=False) 
           file=out, flush=True)
     if code != 0:
         return code
+    if daemon.stats.frames_in == 0:
+        # a camera that is absent or will not open: the daemon retried all along (the warnings
+        # above say why); for the demo, a check, that is a source that cannot be opened
+        print(f"demo failed: source {uri} delivered no frame in {elapsed:.1f} s (it could not be "
+              "opened or read: see the warnings above)", file=out, flush=True)
+        return 2
     return 0 if flows > 0 and hbs > 0 else 1

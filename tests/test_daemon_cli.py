@@ -4,6 +4,7 @@ and the flow's signs and size must match the file's known motion."""
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import statistics
@@ -191,6 +192,36 @@ def test_demo_with_a_bad_synthetic_option_exits_2():
     result = run_cli(["--demo", "--source", "synthetic:noise=-1"], timeout=60)
     assert result.returncode == 2
     assert "synthetic option noise=-1: must be >= 0" in result.stderr
+
+
+def test_demo_takes_the_focal_length_and_refuses_link_options(tmp_path):
+    """--focal-length-px was dropped by the demo (the file's [optics] value was used):
+    now both give the same truth, 2 px/frame × 100 frames/s / 160 px = 1.25 rad/s. The
+    demo's link is its own: a port, baud rate, autopilot or protocol for it is refused
+    (exit 2, naming them), not ignored; --realtime is what the demo does anyway."""
+    backend = engine_backend()
+    engine = f'[engine]\nbackend = "{backend}"\n'
+    if backend != "opencl":  # numpy is slow
+        engine += "[source]\nwidth = 96\nheight = 72\n"
+    plain, focal = tmp_path / "plain.toml", tmp_path / "focal.toml"
+    plain.write_text(engine)
+    focal.write_text(engine + "[optics]\nfocal_length_px = 160\n")
+    for args in (["--config", plain, "--focal-length-px", "160", "--realtime", "--log-level", "INFO"],
+                 ["--config", focal, "--log-level", "INFO"]):
+        result = run_cli(["--demo", "--frames", "130", *args], timeout=120)
+        assert result.returncode == 0, result.stdout + result.stderr[-3000:]
+        assert "focal length 160.0 px" in result.stderr, result.stderr[-3000:]  # the daemon's INFO start line
+        rows = [line for line in result.stdout.splitlines() if re.match(r"\s+\d+\.\d\s", line)]
+        assert rows, result.stdout
+        truth = [float(x) for x in re.findall(r"[-+]\d+\.\d+", rows[-1])[-2:]]
+        assert abs(math.hypot(*truth) - 1.25) < 0.01, (args, rows[-1])
+    given = [["--serial", "/dev/ttyUSB0"], ["--baud", "57600"], ["--autopilot", "px4"], ["--protocol", "msp"]]
+    for extra in [*given, [word for flag in given for word in flag]]:
+        result = run_cli(["--demo", "--frames", "5", *extra], timeout=60)
+        assert result.returncode == 2, (extra, result.stdout, result.stderr)
+        names = ", ".join(extra[::2])
+        assert f"command line: {names}: not with --demo, which makes its own link" in result.stderr, result.stderr
+        assert "emdflowd demo:" not in result.stdout
 
 
 # -- logging: journald's format only on systemd's own stream -------------------------------

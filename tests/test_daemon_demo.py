@@ -7,7 +7,7 @@ import sys
 import re
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # shared helpers
-from daemon_util import engine_backend, run_cli  # noqa: E402
+from daemon_util import engine_backend, flight_frames, run_cli, start_cli, write_video  # noqa: E402
 
 
 def test_demo_prints_live_telemetry_and_a_summary(tmp_path):
@@ -94,3 +94,72 @@ def test_demo_without_a_usable_opencl_device_says_why_and_runs_on_numpy(monkeypa
     assert "every k-th frame, evenly spaced" in text  # the slow engine gets a steady subset
     assert "-> numpy engine ->" in text and "summary: 40 frames" in text.splitlines()[-1]
     assert "ON THE NUMPY REFERENCE" in text.splitlines()[-1]  # the engine check must not pass quietly
+
+
+def test_demo_with_a_texture_that_does_not_exist_exits_2_without_a_traceback(tmp_path):
+    """The demo made its flight's truth outside its checks: a traceback and exit 1, where
+    emdflowd says what is wrong in one line and exits 2 (the URI's syntax is fine)."""
+    config = tmp_path / "badtex.toml"
+    config.write_text('[source]\nuri = "synthetic:texture=nosuch"\n')
+    for args in (["--source", "synthetic:texture=nosuch"], ["--config", config]):
+        result = run_cli(["--demo", "--frames", "5", *args], timeout=60)
+        assert result.returncode == 2, result.stdout + result.stderr
+        errors = [line for line in result.stderr.splitlines() if " ERROR " in line]
+        assert len(errors) == 1 and "source 'synthetic:texture=nosuch': texture 'nosuch': not a bundled " \
+            "texture" in errors[0], result.stderr
+        assert "Traceback" not in result.stderr and "summary:" not in result.stdout
+
+
+def test_demo_with_a_camera_that_never_delivers_a_frame_exits_2(tmp_path):
+    """A camera that is not there: the demo runs its time on heartbeats and quality 0 as
+    the daemon would, then says the source delivered nothing and exits 2 (was 0)."""
+    from io import StringIO
+
+    from firmware_py.demo import run_demo
+
+    config = tmp_path / "camera.toml"
+    config.write_text("[optics]\nfocal_length_px = 300\n")
+    out = StringIO()
+    uri = "v4l2:/dev/emdflow-test-absent-camera"
+    code = run_demo(seconds=1.5, source=uri, config_path=str(config), out=out, backend=engine_backend(),
+                    size=(96, 72))
+    lines = out.getvalue().splitlines()
+    assert code == 2, out.getvalue()
+    assert lines[-2].startswith("summary: 0 frames") and "HEARTBEAT" in lines[-2]  # the run itself is kept
+    assert lines[-1].startswith(f"demo failed: source {uri} delivered no frame in 1.")
+
+
+def test_demo_banner_shows_the_size_processed(tmp_path):
+    """A 160x120 recording is processed at 160x120 (no [source] size): the banner said 320x240."""
+    from io import StringIO
+
+    from firmware_py.demo import run_demo
+
+    path = write_video(tmp_path / "small.mkv", flight_frames(24, width=160, height=120), fps=50.0)
+    out = StringIO()
+    code = run_demo(frames=10, source=f"video:{path}", config_path=None, out=out, backend=engine_backend())
+    assert code == 0, out.getvalue()
+    banner = out.getvalue().splitlines()[0]
+    assert banner.startswith(f"emdflowd demo: video:{path} 160x120 -> "), banner
+
+
+def test_demo_stops_quietly_when_its_reader_closes_stdout(tmp_path):
+    """`emdflowd --demo | head -1`: the next row met a closed pipe, a BrokenPipeError
+    traceback and exit 1. Now the demo stops like on Ctrl-C: exit 0, nothing on stderr."""
+    config = tmp_path / "demo.toml"
+    backend = engine_backend()
+    size = "" if backend == "opencl" else "[source]\nwidth = 96\nheight = 72\n"
+    config.write_text(f'[engine]\nbackend = "{backend}"\n{size}')
+    proc = start_cli(["--demo", "--frames", "300", "--config", config])
+    try:
+        first = proc.stdout.readline()
+        proc.stdout.close()  # as head does after its line; the demo's next row (at 1 s) meets it
+        stderr = proc.stderr.read()
+        code = proc.wait(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert first.startswith("emdflowd demo: "), first
+    assert code == 0, stderr
+    assert "Traceback" not in stderr and "BrokenPipe" not in stderr and "Exception ignored" not in stderr, stderr

@@ -259,3 +259,20 @@ def test_install_refuses_an_option_without_its_value_and_relative_folders(tmp_pa
         result = _dry_run(option, "opt/emdflow")
         assert result.returncode == 2 and "opt/emdflow: give an absolute path" in result.stderr
     assert _dry_run("--prefix", tmp_path / "opt").returncode == 0
+
+
+def test_install_refuses_a_prefix_the_units_execstart_cannot_hold(tmp_path):
+    """The prefix reaches the unit's ExecStart= through sed's replacement (where & is the
+    matched line, # ends the expression and \\ escapes) and then systemd (whitespace splits
+    the command, % and $ are expanded): "/srv/e&f" wrote ExecStart=/srv/eExecStart=...f/...
+    Each is refused before anything is done (always as a dry run: _dry_run passes --dry-run first)."""
+    for prefix in ("/srv/e&f", "/srv/a#b", "/srv/a\\b", "/srv/my flow", "/srv/a\tb", "/srv/a\nb",
+                   "/srv/100%", "/srv/$HOME", '/srv/a"b', "/srv/a'b"):
+        result = _dry_run("--prefix", prefix)
+        assert result.returncode == 2, (prefix, result.stdout, result.stderr)
+        assert f"install.sh: --prefix '{prefix}': the unit's ExecStart= cannot hold" in result.stderr
+        assert "+ " not in result.stdout, prefix
+    ok = tmp_path / "emdflow-1.2_x+y@host,z=~"
+    result = _dry_run("--prefix", ok)
+    assert result.returncode == 0, result.stderr
+    assert f"+ mkdir -p {ok}" in result.stdout

@@ -161,6 +161,38 @@ def test_video_source_missing_file_named(tmp_path):
         open_source(f"video:{bad}")
 
 
+def test_video_path_that_is_no_file_says_what_it_is(tmp_path):
+    """A folder or a FIFO given as the recording was reported as "no such file" (it exists):
+    each says what it is, for video: and depthai-replay: alike, and stays exit 2."""
+    from daemon_util import PtyPair, run_cli
+
+    folder = tmp_path / "flights"
+    folder.mkdir()
+    fifo = tmp_path / "pipe.mkv"
+    os.mkfifo(fifo)
+    schemes = ["video"]
+    try:
+        import depthai  # noqa: F401 - the replay probes the file the same way, before its pipeline
+
+        schemes.append("depthai-replay")
+    except ImportError:
+        pass
+    for scheme in schemes:
+        with pytest.raises(SourceError, match=rf"'{re.escape(str(folder))}': is a directory$"):
+            make_source(f"{scheme}:{folder}")
+        with pytest.raises(SourceError, match=rf"'{re.escape(str(fifo))}': is not a regular file$"):
+            make_source(f"{scheme}:{fifo}")
+        with pytest.raises(SourceError, match="nothere.mkv': no such file$"):
+            make_source(f"{scheme}:{tmp_path}/nothere.mkv")
+    pty = PtyPair()
+    try:
+        result = run_cli(["--source", f"video:{folder}", "--serial", pty.path, "--frames", 3], timeout=60)
+    finally:
+        pty.close()
+    assert result.returncode == 2, result.stderr[-2000:]
+    assert f"video file '{folder}': is a directory" in result.stderr and "Traceback" not in result.stderr
+
+
 def test_depthai_replay_same_frames_as_file(clip, request):
     pytest.importorskip("depthai")
     if not run_isolated_from_native_crashes(request, timeout=30.0):

@@ -44,7 +44,10 @@ def probe_video(path: str | Path) -> tuple[int, int, float]:
     """Return (width, height, fps) of a video file; raise :class:`SourceError` naming it."""
     path = Path(path)
     if not path.is_file():
-        raise SourceError(f"video file {str(path)!r}: no such file")
+        # (an existing path that is no file is a wrong path, not a missing recording)
+        what = ("is a directory" if path.is_dir() else
+                "is not a regular file" if path.exists() else "no such file")
+        raise SourceError(f"video file {str(path)!r}: {what}")
     cap = cv2.VideoCapture(str(path))
     try:
         if not cap.isOpened():
