@@ -44,7 +44,10 @@ SYNTHETIC_DEFAULTS = {
     "seed": 0,
     "supersample": 2,
 }
-_MAX_CACHED_FRAMES = 1000  # 320×240 → 77 MB at most; longer circles are rendered live
+#: a circle's frames are kept only up to this many bytes in all (320×240: 1092 frames, a
+#: 10.9 s circle at 100 fps); longer or larger circles are rendered live (a frame count
+#: alone let a 4096×4096 circle keep up to 16.8 GB)
+_MAX_CACHED_BYTES = 84_000_000
 #: Accepted range of each numeric option: (minimum, maximum, minimum is exclusive). Beyond
 #: these a flight is meaningless (flow far beyond what the engine resolves, noise beyond the
 #: gray range), or a typo that must not become an hour-long loop or an unbounded render cost
@@ -139,7 +142,7 @@ class SyntheticSource(FrameSource):
             self._flight_kwargs = dict(texture=o["texture"], flow=(0.0, 0.0), **common)
             th, tw = load_texture(o["texture"]).shape
             self._centre = (tw / 2.0, th / 2.0)
-            cacheable = self.loop_frames <= _MAX_CACHED_FRAMES
+            cacheable = self.loop_frames * self.width * self.height <= _MAX_CACHED_BYTES
             self._cache: list[np.ndarray | None] | None = [None] * self.loop_frames if cacheable else None
         self._pacer = Pacer(self.fps) if realtime else None
         self._index = 0

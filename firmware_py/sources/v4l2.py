@@ -17,6 +17,8 @@ the asked aspect ratio before resizing, so both axes get the same scale.
 from __future__ import annotations
 
 import logging
+import os
+import stat
 import time
 from pathlib import Path
 
@@ -93,6 +95,8 @@ def raw_to_gray(raw: np.ndarray, pixel_format: str, width: int, height: int) -> 
     raise SourceError(f"pixel format {pixel_format!r}: expected one of {', '.join(PIXEL_FORMATS)}")
 
 
+#: the Linux kernel's character-device major number of Video4Linux (/dev/video*)
+V4L2_MAJOR = 81
 #: V4L2 device indices: /dev/video0 .. /dev/video255 (the kernel's VIDEO_NUM_DEVICES)
 MAX_DEVICE_INDEX = 255
 
@@ -169,8 +173,18 @@ class V4L2Source(FrameSource):
 
     def open(self) -> None:
         self.close()
-        if isinstance(self.device, str) and not Path(self.device).exists():
-            raise SourceError(f"{self.uri}: {self.device} does not exist (camera unplugged?)")
+        if isinstance(self.device, str):
+            path = Path(self.device)
+            if not path.exists():
+                raise SourceError(f"{self.uri}: {self.device} does not exist (camera unplugged?)")
+            # a path that is there but no V4L2 device (a folder, a file, /dev/null) never
+            # becomes a camera: a setting to fix, not a camera to wait for
+            info = path.stat()
+            if not stat.S_ISCHR(info.st_mode) or os.major(info.st_rdev) != V4L2_MAJOR:
+                what = ("a directory" if path.is_dir() else "not a device" if not stat.S_ISCHR(info.st_mode)
+                        else f"a character device of major {os.major(info.st_rdev)}, not V4L2's {V4L2_MAJOR}")
+                raise SourceConfigError(f"{self.uri}: {self.device} is {what}: expected a camera, "
+                                        "/dev/videoN or a /dev/ symlink to one")
         try:
             cap = self._factory(self.device, cv2.CAP_V4L2)
         except cv2.error as exc:  # OpenCV refusing the device outright
