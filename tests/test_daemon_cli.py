@@ -164,6 +164,15 @@ def test_a_port_that_can_never_be_a_serial_port_is_a_configuration_error(tmp_pat
     assert "Traceback" not in result.stderr
 
 
+def test_a_pyserial_url_port_is_a_configuration_error():
+    """socket:// and other pyserial URLs open through serial_for_url, which the link does
+    not use: refused at start instead of failing to open and being retried for ever."""
+    result = run_cli(["--source", "synthetic:", "--serial", "socket://127.0.0.1:5760", "--frames", 3], timeout=60)
+    assert result.returncode == 2, result.stderr[-2000:]
+    assert "[link] port (--serial) socket://127.0.0.1:5760: is a URL" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
 @pytest.mark.parametrize("autopilot, baud, advice", [("ardupilot", 4800, 9600), ("px4", 4800, 19200),
                                                      ("both", 9600, 38400), ("inav", 1200, 4800)])
 def test_a_baud_rate_too_low_for_the_flow_messages_is_a_configuration_error(autopilot, baud, advice):

@@ -44,10 +44,14 @@ def port_problem(port: str) -> str | None:
     A path that exists must be a character device (a tty, a pseudo-terminal)."""
     import stat
 
+    if "://" in port:
+        # (pyserial's URLs, socket:// or rfc2217://, open through serial_for_url, which this
+        # link does not use: such a port failed to open and was retried for ever)
+        return "is a URL; the link writes to a serial device path (a tty or pseudo-terminal)"
     try:
         mode = os.stat(port).st_mode
     except OSError:
-        return None  # missing (retried), or a pyserial URL such as socket://host:port
+        return None  # missing: retried
     if stat.S_ISCHR(mode):
         return None
     if stat.S_ISDIR(mode):
