@@ -108,12 +108,12 @@ def test_portable_kernels_are_standard_opencl_c_1_2(monkeypatch, tmp_path, model
     assert result.returncode == 0 and "warning" not in result.stderr, result.stderr[-2000:]
 
 
-@pytest.mark.parametrize("prefilter_size", [11, 3, 41])
+@pytest.mark.parametrize("prefilter_size", [11, 3, 41, 51])
 @pytest.mark.parametrize("width", [3, 13, 26, 47, 70])
 def test_prefilter_at_the_frame_edges(width, prefilter_size):
     """The prefiltered image equals the reference's (clamped reads at the frame edges),
     also where one 16-column strip holds both edges and where the radius (20 px at 41
-    taps) spans more than one strip."""
+    taps, 25 px at 51) spans more than one strip."""
     height = 9
     params = EngineParams(prefilter_size=prefilter_size)
     engine = opencl_backend.OpenCLEngine(width, height, params)
