@@ -832,7 +832,7 @@ def test_v4l2_other_aspect_ratio_is_cropped_not_stretched(caplog):
     """A camera that falls back to 640x400 when 320x240 was asked: equal motion on both axes
     of the sensor must stay equal in the processed frames (the link has one focal length)."""
     sensor = flight_frames(6, flow=(5.0, 5.0), width=640, height=400)  # 3 px/frame processed
-    source = V4L2Source("/dev/null", width=320, height=240, capture_factory=lambda d, a: _FakeV4L2Capture(
+    source = V4L2Source("0", width=320, height=240, capture_factory=lambda d, a: _FakeV4L2Capture(
         d, a, buffers=lambda i: sensor[i].reshape(1, -1).copy(), size=(640, 400)))
     with caplog.at_level("INFO", logger="emdflowd.v4l2"):
         source.open()
