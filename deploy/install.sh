@@ -93,6 +93,13 @@ case "$PREFIX" in
             "& # \\ % \$ \" ' in the path: choose another folder" >&2
         exit 2 ;;
 esac
+# the service user goes into the unit's User= and Group= the same way: a name as useradd
+# takes one (letters, digits, _ . -, not starting with -)
+case "$SERVICE_USER" in
+    ''|-*|*[!A-Za-z0-9_.-]*)
+        echo "install.sh: --user '$SERVICE_USER': expected a user name of letters, digits, _ . -" >&2
+        exit 2 ;;
+esac
 case "$OPENCL" in pip|apt|vendor) ;; *) echo "install.sh: --opencl must be pip, apt or vendor" >&2; exit 2 ;; esac
 [ -f "$SRC/pyproject.toml" ] || { echo "install.sh: $SRC is not an emdflow checkout (no pyproject.toml)" >&2; exit 2; }
 

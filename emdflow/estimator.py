@@ -233,8 +233,8 @@ class FlowEstimator:
             packed, stats, hist, positions = _empty_output(self.height, self.width, stats, hist, positions)
         if _is_brightness_step(stats, self.width * self.height):
             self._last_step = self._frames
-        # the step's states sit in the templates of this frame and the next two (see
-        # step_frames: longer for uncompensated delays)
+        # the step's states sit in the templates of this frame and the next
+        # _step_frames - 1 (2, or 3 max(delays) - 1 for uncompensated delays)
         in_templates = self._last_step is not None and self._frames - self._last_step < self._step_frames
         return FlowField(None, None, stats, hist, self.params, self._frames, positions=positions,
                          exposure_step=in_templates, packed=packed, shape=(self.height, self.width))

@@ -347,9 +347,10 @@ class SummaryOptions:
         Share of scale-1 receptors with a nonzero state below which a textured scene with
         too few detections counts as static.
     static_noise_ratio : float
-        A textured scene with too few detections also counts as static when its scale-5
-        receptors changed at less than this times the scale-1 rate: the changes are sensor
-        noise, not motion (see :func:`_looks_static`).
+        With the contrast-adaptive threshold, a textured scene with too few detections also
+        counts as static when its scale-5 receptors changed at less than this times the
+        scale-1 rate: the changes are sensor noise, not motion (see :func:`_looks_static`;
+        0 turns the test off).
     huber_fraction, huber_floor : float
         Huber threshold of the IoC fit: ``max(floor, fraction · |F|)`` px/frame
         (the detector's speed bands are relative: scale ``k`` fires from ~k/2 to ~1.5k).
@@ -1162,26 +1163,28 @@ def _looks_static(field: FlowField, opts: "SummaryOptions") -> bool:
     """Whether a textured frame with too few detections shows a static scene (flow 0)
     rather than a motion the detector cannot follow (too fast, flicker).
 
-    Static: at most ``opts.static_changed`` of the scale-1 receptors changed, or the
-    changes are sensor noise — the one-frame receptors of the smallest scale >=
-    :data:`STATIC_SCALE` changed at less than ``opts.static_noise_ratio`` times the scale-1
-    rate. A k×k box sum changes under motion about as readily as one receptor (by the motion
-    times the box's summed gradient, against θk²) but averages the noise that lights single
-    receptors where the contrast-adaptive threshold sits at its floor. Measured on 320×240
-    flights (gravel, brick, camera; contrast 1, 0.5, 0.25; noise σ 2, 3): static scenes
-    changed up to 4.6 % of the scale-1 receptors (a quarter of the contrast, σ 2: 0.7 %,
-    which read as motion: quality 0 while hovering) at scale-5 / scale-1 ratios of 0–0.04
-    frame by frame; moving flights that come here (fewer detections than
-    ``min_detections``) are the paper's model at its floor: 0.25 px/frame over the camera
-    photograph at ratios of 0.39–0.51, 0.5 px/frame at half the contrast and σ = 3 (2
-    detections a frame) at 0–0.15, where 4–6 of 17 frames now read static instead of 0–1
-    (at 0.4 px/frame all of them, as before).
+    Static: at most ``opts.static_changed`` of the scale-1 receptors changed; or, with the
+    contrast-adaptive threshold, the changes are sensor noise — the one-frame receptors of
+    the smallest scale >= :data:`STATIC_SCALE` (the largest scale if none is; none if that
+    is the finest) changed at less than ``opts.static_noise_ratio`` times the scale-1 rate
+    (0 turns this test off). A k×k box sum changes under motion about as readily as one
+    receptor (by the motion times the box's summed gradient, against θk²) but averages the
+    noise that lights single receptors where the adaptive threshold sits at its floor.
+    Measured with the extended model on 320×240 flights (gravel, brick, camera; contrast
+    1, 0.5, 0.25; noise σ 2, 3): static scenes changed up to 4.6 % of the scale-1
+    receptors (a quarter of the contrast, σ 2: 0.7 %, which read as motion: quality 0
+    while hovering) at scale-5 / scale-1 ratios of 0–0.04 frame by frame, and no moving
+    flight of 0.25–25 px/frame came here. A fixed threshold (the paper's model) keeps the
+    scale-1 test alone: at its floor (0.5–0.6 px/frame at half the contrast, 2 detections a
+    frame) the ratio test read most frames of moving brick and gravel flights as static.
     """
     params = field.params
     changed = field.changed_fraction
     fine = changed[params.channels.index((params.scales[0], 1))]
     if fine <= opts.static_changed:
         return True
+    if params.threshold_mode != "adaptive":
+        return False
     scales = sorted(params.scales)
     coarse_scale = next((k for k in scales if k >= STATIC_SCALE), scales[-1])
     if coarse_scale == scales[0]:

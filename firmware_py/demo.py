@@ -149,7 +149,12 @@ def _run_demo(*, frames, config_path, source, seconds, backend, size, focal_leng
             if fd is not None:
                 os.close(fd)
         return 2
-    fell_back = not backend and config.engine.backend == "opencl" and _fall_back_without_opencl(config, out)
+    try:
+        fell_back = not backend and config.engine.backend == "opencl" and _fall_back_without_opencl(config, out)
+    except BaseException:  # (its printing may meet a closed stdout: run_demo ends the demo)
+        os.close(master)
+        os.close(slave)
+        raise
     daemon = Daemon(config)
     result: dict = {}
 
@@ -183,7 +188,9 @@ def _run_demo(*, frames, config_path, source, seconds, backend, size, focal_leng
         while not stop.is_set() and thread.is_alive():
             reader.poll(0.02)
             now = time.monotonic()
-            if frames is None and now - start >= seconds:
+            # (with --frames the daemon ends the run; a source that has delivered nothing by
+            # the demo's time never will in the demo: a camera that is absent or will not open)
+            if now - start >= seconds and (frames is None or daemon.stats.frames_in == 0):
                 break
             if now >= next_row:
                 processed = daemon.stats.processed

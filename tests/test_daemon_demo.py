@@ -119,14 +119,15 @@ def test_demo_with_a_camera_that_never_delivers_a_frame_exits_2(tmp_path):
 
     config = tmp_path / "camera.toml"
     config.write_text("[optics]\nfocal_length_px = 300\n")
-    out = StringIO()
     uri = "v4l2:/dev/emdflow-test-absent-camera"
-    code = run_demo(seconds=1.5, source=uri, config_path=str(config), out=out, backend=engine_backend(),
-                    size=(96, 72))
-    lines = out.getvalue().splitlines()
-    assert code == 2, out.getvalue()
-    assert lines[-2].startswith("summary: 0 frames") and "HEARTBEAT" in lines[-2]  # the run itself is kept
-    assert lines[-1].startswith(f"demo failed: source {uri} delivered no frame in 1.")
+    for frames in (None, 5):  # with --frames too: the daemon would wait for them for ever
+        out = StringIO()
+        code = run_demo(seconds=1.5, frames=frames, source=uri, config_path=str(config), out=out,
+                        backend=engine_backend(), size=(96, 72))
+        lines = out.getvalue().splitlines()
+        assert code == 2, out.getvalue()
+        assert lines[-2].startswith("summary: 0 frames") and "HEARTBEAT" in lines[-2]  # the run itself is kept
+        assert lines[-1].startswith(f"demo failed: source {uri} delivered no frame in 1.")
 
 
 def test_demo_banner_shows_the_size_processed(tmp_path):

@@ -276,3 +276,17 @@ def test_install_refuses_a_prefix_the_units_execstart_cannot_hold(tmp_path):
     result = _dry_run("--prefix", ok)
     assert result.returncode == 0, result.stderr
     assert f"+ mkdir -p {ok}" in result.stdout
+
+
+def test_install_refuses_a_user_name_the_unit_cannot_hold():
+    """--user reaches the unit's User= and Group= through the same sed replacement: only a
+    user name as useradd takes one passes (always as a dry run)."""
+    for user in ("a b", "x&y", "a#b", "a\\b", "ro$t", "a/b"):
+        result = _dry_run("--user", user)
+        assert result.returncode == 2, (user, result.stdout, result.stderr)
+        assert f"install.sh: --user '{user}': expected a user name" in result.stderr
+        assert "+ " not in result.stdout, user
+    for user in ("emdflow", "pi", "flow_1.x-y"):
+        result = _dry_run("--user", user)
+        assert result.returncode == 0, (user, result.stderr)
+        assert f"'{user}'" in result.stdout

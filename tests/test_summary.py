@@ -365,6 +365,28 @@ def test_static_low_contrast_scene_is_static_with_the_adaptive_threshold(texture
         assert s.static and s.quality > 0 and (s.flow_x, s.flow_y) == (0.0, 0.0)
 
 
+def test_paper_model_at_its_floor_is_not_read_static():
+    """The noise test is the adaptive threshold's: with the paper's fixed threshold a flight
+    at its floor (0.5-0.6 px/frame, half the contrast, σ = 3: a few detections a frame)
+    changes its scale-5 receptors little, and the ratio test read frames whose scale-1
+    receptors did change as static (flow 0 at quality 191 while the drone drifts). There
+    only the scale-1 share decides."""
+    opts = SummaryOptions()
+    checked = 0
+    for texture in ("brick", "gravel"):
+        for speed in (0.5, 0.6):
+            est = emdflow.FlowEstimator(W, H, backend="opencl")
+            flight = CameraFlight(texture, width=W, height=H, flow=(0.8 * speed, 0.6 * speed),
+                                  noise_sigma=3.0, contrast=0.5, seed=2)
+            for t in range(20):
+                field = est.update(flight.render(t))
+                s = summarize(field)
+                if field.ready and s.detections < opts.min_detections and field.changed_fraction[0] > opts.static_changed:
+                    assert not s.static and s.quality == 0, (texture, speed, t)
+                    checked += 1
+    assert checked >= 20
+
+
 def test_real_static_scene():
     est = emdflow.FlowEstimator(W, H, backend="opencl")
     flight = CameraFlight("brick", width=W, height=H, flow=(0.0, 0.0), noise_sigma=2.0, seed=2)

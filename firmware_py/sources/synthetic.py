@@ -44,10 +44,10 @@ SYNTHETIC_DEFAULTS = {
     "seed": 0,
     "supersample": 2,
 }
-#: a circle's frames are kept only up to this many bytes in all (320×240: 1092 frames, a
-#: 10.9 s circle at 100 fps); longer or larger circles are rendered live (a frame count
-#: alone let a 4096×4096 circle keep up to 16.8 GB)
-_MAX_CACHED_BYTES = 84_000_000
+#: a circle's frames are kept only up to this many bytes in all (the 1000 frames of a
+#: 10 s circle at 100 fps at 640×480, 4166 at 320×240); longer or larger circles are
+#: rendered live (a frame count alone let a 4096×4096 circle keep up to 16.8 GB)
+_MAX_CACHED_BYTES = 320_000_000
 #: Accepted range of each numeric option: (minimum, maximum, minimum is exclusive). Beyond
 #: these a flight is meaningless (flow far beyond what the engine resolves, noise beyond the
 #: gray range), or a typo that must not become an hour-long loop or an unbounded render cost

@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import os
 import stat
+import sys
 import time
 from pathlib import Path
 
@@ -180,7 +181,10 @@ class V4L2Source(FrameSource):
             # a path that is there but no V4L2 device (a folder, a file, /dev/null) never
             # becomes a camera: a setting to fix, not a camera to wait for
             info = path.stat()
-            if not stat.S_ISCHR(info.st_mode) or os.major(info.st_rdev) != V4L2_MAJOR:
+            # (the major number is Linux's: elsewhere, e.g. FreeBSD's webcamd, any character
+            # device may be a camera)
+            linux = sys.platform.startswith("linux")
+            if not stat.S_ISCHR(info.st_mode) or (linux and os.major(info.st_rdev) != V4L2_MAJOR):
                 what = ("a directory" if path.is_dir() else "not a device" if not stat.S_ISCHR(info.st_mode)
                         else f"a character device of major {os.major(info.st_rdev)}, not V4L2's {V4L2_MAJOR}")
                 raise SourceConfigError(f"{self.uri}: {self.device} is {what}: expected a camera, "
