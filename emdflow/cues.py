@@ -423,6 +423,8 @@ def looming_cues(field: FlowField, *, min_detections: int = 50) -> LoomingCues:
             return LoomingCues()
     else:
         rate = _slope_rate(pos, counts, signed, field.shape, axes)
+        if not (math.isfinite(rate) and abs(rate) <= _MAX_RATE):
+            return LoomingCues()  # (the calibrated fit's limit holds for the line fit too)
     balance = np.where(usable, _balance(pos, counts, signed), 0.0)
     return LoomingCues(
         expansion_rate=rate,

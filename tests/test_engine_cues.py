@@ -87,6 +87,28 @@ def test_uncalibrated_channels_fall_back_to_the_line_fit():
     assert cue.expansion_rate > 0.01
 
 
+def test_uncalibrated_line_fit_beyond_the_rate_limit_is_no_cue():
+    """The line fit of an uncalibrated channel set is held to the same 0.1/frame limit as
+    the calibrated fit: two halves moving apart at 6 px/frame (64 px wide) read rates of
+    0.24-0.35/frame, contact 'in 3 frames', as a cue."""
+    w, h = 64, 48
+    left = CameraFlight("gravel", width=w, height=h, flow=(-6.0, 0.0), seed=1)
+    right = CameraFlight("gravel", width=w, height=h, flow=(6.0, 0.0), seed=2)
+    est = emdflow.FlowEstimator(w, h, scales=(1, 3, 5, 7))
+    assert _table_for(est.params) is None
+    fits = 0
+    for t in range(8):
+        frame = right.render(t)
+        frame[:, : w // 2] = left.render(t)[:, : w // 2]
+        field = est.update(frame)
+        cue = looming_cues(field)
+        fitted = slope_expansion_rate(field)
+        if field.ready and cue.detections == 0 and fitted is not None and abs(fitted) > 0.1:
+            fits += 1  # the fit went past the limit: no cue
+        assert abs(cue.expansion_rate) <= 0.1
+    assert fits > 0
+
+
 def test_cue_reads_the_histograms_only():
     """The cue works on the 2 × 16 position bins, never on the dense field, so its cost
     does not grow with the frame size (the README gives the measured cost): a field whose
