@@ -238,6 +238,10 @@ def test_eval_csv_table_and_plot(tmp_path, backend, capsys):
     md, png2 = tmp_path / "t.md", tmp_path / "again.png"
     assert main(["eval", "--from-csv", str(out_csv), "--plot", str(png2), "--markdown", str(md)]) == 0
     assert png2.read_bytes()[:8] == PNG_MAGIC
+    # the image type follows the file ending (an .svg used to get PNG bytes)
+    svg = tmp_path / "again.svg"
+    assert main(["eval", "--from-csv", str(out_csv), "--plot", str(svg)]) == 0
+    assert b"<svg" in svg.read_bytes()[:2000]
     text = md.read_text()
     assert "| speed | EMD density" in text and "| zoom |" in text
     bad = tmp_path / "bad.csv"
@@ -802,6 +806,8 @@ def test_output_mistakes_are_found_before_the_run(tmp_path, capsys, clip, backen
     for label in ("dis", " "):
         assert main(["eval", "--quick", "--label", label, "--csv", str(tmp_path / "e.csv")]) == 2
         _one_line_error(capsys, "--label", "not be empty or 'dis'")
+    assert main(["eval", "--quick", "--seed", "-1", "--csv", str(tmp_path / "e.csv")]) == 2  # (a traceback)
+    _one_line_error(capsys, "--seed -1", "0 or more")
     if os.geteuid() != 0:  # (root writes anywhere)
         locked = tmp_path / "locked"
         locked.mkdir(mode=0o500)

@@ -643,7 +643,7 @@ def plot_results(rows: list[dict], path, *, title: str | None = None, engine_lab
     fig.tight_layout(rect=(0, 0.1, 1, 1))
     fig.legend(handles, labels, loc="lower center", ncol=min(6, max(1, len(labels) // 2)), fontsize=7,
                frameon=False)
-    fig.savefig(path, format="png")
+    fig.savefig(path)  # (the image type from the file ending plot_type_problem checked)
     plt.close(fig)
 
 
@@ -753,6 +753,8 @@ def config_from_args(args) -> EvalConfig:
     bad = [d for d in over.get("directions", ()) if not math.isfinite(d)]
     if bad:
         raise ValueError(f"--directions {bad[0]:g}: every direction must be a finite number (degrees)")
+    if args.seed < 0:  # (numpy's generators take no negative seed)
+        raise ValueError(f"--seed {args.seed}: must be 0 or more")
     over["seed"] = args.seed
     over["dis"] = not args.no_dis
     return quick_config(**over) if args.quick else EvalConfig(**over)

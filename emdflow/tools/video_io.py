@@ -258,9 +258,16 @@ def parse_synthetic(uri: str) -> dict:
         raise InputError(f"{uri}: {e}") from None
     if opts["frames"] < 1 or opts["fps"] <= 0:
         raise InputError(f"{uri}: frames and fps must be positive")
+    if opts["frames"] > MAX_SYNTHETIC_FRAMES:  # (a clip of 10^20 frames overflowed an index)
+        raise InputError(f"{uri}: frames={opts['frames']}: at most {MAX_SYNTHETIC_FRAMES}")
     if opts["zoom"] <= -1.0:  # the image scale (1 + zoom)**t would reach 0
         raise InputError(f"{uri}: zoom={opts['zoom']:g}: must be > -1 (scale growth per frame)")
     return opts
+
+
+#: frames of a synthetic clip (rendered on demand: the bound only keeps counts sane, ~11.6
+#: days at 1000 fps)
+MAX_SYNTHETIC_FRAMES = 10**9
 
 
 def _open_synthetic(uri, size, fps, max_frames) -> FrameSource:
