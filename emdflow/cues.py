@@ -404,7 +404,11 @@ def looming_cues(field: FlowField, *, min_detections: int = 50) -> LoomingCues:
     ------
     ValueError
         If the field has no summary evidence (``FlowEstimator(..., summary_evidence=False)``).
+    TypeError
+        If ``field`` is not a :class:`FlowField`.
     """
+    if not isinstance(field, FlowField):  # (as summarize(): not an AttributeError from inside)
+        raise TypeError(f"looming_cues() takes a FlowField, not {type(field).__name__}")
     field.require_evidence("looming_cues()")
     if not field.ready or field.positions is None:
         return LoomingCues()

@@ -109,6 +109,12 @@ def test_uncalibrated_line_fit_beyond_the_rate_limit_is_no_cue():
     assert fits > 0
 
 
+def test_cue_of_something_that_is_no_field_is_a_type_error():
+    for thing in (None, np.zeros((4, 4))):
+        with pytest.raises(TypeError, match=r"looming_cues\(\) takes a FlowField, not "):
+            looming_cues(thing)
+
+
 def test_cue_reads_the_histograms_only():
     """The cue works on the 2 × 16 position bins, never on the dense field, so its cost
     does not grow with the frame size (the README gives the measured cost): a field whose
