@@ -147,7 +147,7 @@ import numpy as np
 
 from emdflow.params import GRADIENT_CLASS_STEPS, ORIENTATION_BINS
 from emdflow.params import MODELS as _MODELS
-from emdflow.tools import interp_weights
+from emdflow.tools import ToolError, frame_size_problem, interp_weights, output_problem
 
 CALIBRATION_TEXTURES = ("moon", "coffee", "astronaut", "rocket")
 #: Kinds of ground a table is measured over (``fit --ground``): the photographs' edges, or
@@ -303,8 +303,9 @@ def collect(flights: int, out: str, frames: int = 7, seed: int = 20240601, width
         if (i + 1) % 250 == 0:
             print(f"{i + 1}/{flights} flights, {time.time() - t0:.0f} s", file=sys.stderr,
                   flush=True)
-    np.savez_compressed(out, hist=np.array(hists), flow=np.array(flows), stats=np.array(stats),
-                        texture=np.array(names), model=np.array(model))
+    with open(out, "wb") as fh:  # exactly ``out`` (a path without .npz would get one appended)
+        np.savez_compressed(fh, hist=np.array(hists), flow=np.array(flows), stats=np.array(stats),
+                            texture=np.array(names), model=np.array(model))
     print(f"wrote {len(hists)} frames to {out}", file=sys.stderr)
 
 
@@ -957,8 +958,16 @@ def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: 
              textures=EVALUATION_TEXTURES, diagonal: bool = True):
     """Render (or load with ``data``) the evaluation flights (``width`` × ``height`` frames,
     over ``textures``; ``diagonal``: with the diagonal detectors' evidence, the default) and
-    :func:`score` them."""
+    :func:`score` them.
+
+    Raises
+    ------
+    ToolError
+        Code 2 when the file ``data`` does not exist.
+    """
     if data:
+        if not Path(data).is_file():
+            raise ToolError(f"--data {data}: no such file", 2)
         with np.load(data) as z:
             flights = {k: z[k] for k in z.files}
         label = data
@@ -984,9 +993,35 @@ def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: 
         if tuple(textures) != EVALUATION_TEXTURES:
             label += f", over {','.join(textures)}"
         if save:
-            np.savez_compressed(save, **flights)
+            with open(save, "wb") as fh:  # exactly ``save`` (numpy would append .npz to a path)
+                np.savez_compressed(fh, **flights)
     print(f"{label}: {len(flights['flow'])} frames")
     return score(flights, options)
+
+
+def _positive_range(ap, option: str, text: str, unit: str) -> tuple[float, float]:
+    """``lo,hi`` of ``option`` as floats with ``0 < lo <= hi < inf``, else ``ap.error``
+    (exit 2) naming the option."""
+    try:
+        lo, hi = (float(x) for x in text.split(","))  # ValueError unless two numbers
+    except ValueError:
+        lo = hi = math.nan
+    if not (math.isfinite(hi) and 0.0 < lo <= hi):
+        ap.error(f"{option} {text!r}: expected lo,hi with 0 < lo <= hi ({unit})")
+    return lo, hi
+
+
+def _check_textures(ap, textures, text: str) -> None:
+    """``ap.error`` (exit 2) unless every name of ``--textures`` is a ground the flights know."""
+    from emdflow.synthetic import load_texture
+
+    if not all(textures):
+        ap.error(f"--textures {text!r}: expected comma-separated texture names")
+    for texture in textures:
+        try:
+            load_texture(texture)
+        except ValueError as exc:
+            ap.error(f"--textures: {exc}")
 
 
 def main(argv=None):
@@ -1073,20 +1108,40 @@ def main(argv=None):
                         f"{','.join(CALIBRATION_TEXTURES)} measures how well a table fits "
                         "its own ground)")
     a = ap.parse_args(argv)
+    # every option and file is checked here, before the flights (not as a traceback, or
+    # an error after all of them)
+    if a.cmd in ("fit", "misfit", "margin"):
+        for path in a.data:
+            if not Path(path).is_file():
+                ap.error(f"data {path}: no such file")
     if a.cmd == "collect":
-        bad = set(a.textures.split(",")) & set(EVALUATION_TEXTURES)
+        textures = tuple(a.textures.split(","))
+        bad = set(textures) & set(EVALUATION_TEXTURES)
         if bad:
             ap.error(f"--textures: {', '.join(sorted(bad))} belong to the evaluation set")
+        _check_textures(ap, textures, a.textures)
+        if a.flights < 1:
+            ap.error(f"--flights {a.flights}: must be at least 1")
+        history = model_params(a.model, a.diagonal_evidence).history_frames
+        if a.frames < 1 or (a.model == "paper" and a.frames <= history):
+            # (the paper's flights are --frames long in all, the first ones fill the history)
+            least = history + 1 if a.model == "paper" else 1
+            ap.error(f"--frames {a.frames}: must be at least {least} for the {a.model} model")
+        if a.seed < 0:
+            ap.error(f"--seed {a.seed}: must be >= 0")
         try:
             lo, hi = a.noise_range.split(",")  # ValueError unless two fields
             noise_range = _checked_noise(lo, hi, "--noise-range")
         except ValueError:
             ap.error(f"--noise-range {a.noise_range!r}: expected lo,hi with 0 <= lo <= hi (gray levels)")
-        collect(a.flights, a.out, a.frames, a.seed, textures=tuple(a.textures.split(",")),
-                backend=a.backend,
-                scale_range=tuple(float(x) for x in a.scale_range.split(",")), model=a.model,
-                contrast_range=(tuple(float(x) for x in a.contrast_range.split(","))
-                                if a.contrast_range else None),
+        scale_range = _positive_range(ap, "--scale-range", a.scale_range, "texture px per image px")
+        contrast_range = (_positive_range(ap, "--contrast-range", a.contrast_range, "contrast factor")
+                          if a.contrast_range else None)
+        if problem := output_problem(a.out):
+            ap.error(f"--out {a.out}: {problem}")
+        collect(a.flights, a.out, a.frames, a.seed, textures=textures,
+                backend=a.backend, scale_range=scale_range, model=a.model,
+                contrast_range=contrast_range,
                 evidence_row_step=a.evidence_row_step, noise_range=noise_range,
                 diagonal=a.diagonal_evidence)
     elif a.cmd == "fit":
@@ -1113,21 +1168,25 @@ def main(argv=None):
             width, height = parse_size(a.size)
         except ValueError as exc:
             ap.error(f"--{exc}")  # "--size '...': expected WIDTHxHEIGHT, ..."
+        if not a.data:  # (--data: the stored flights; evaluate() checks the file)
+            if problem := frame_size_problem(width, height, dis=False):
+                ap.error(f"--size {a.size}: {problem}")
+            if a.save and (problem := output_problem(a.save)):
+                ap.error(f"--save {a.save}: {problem}")
+        if a.frames < 1:
+            ap.error(f"--frames {a.frames}: must be at least 1")
         try:
             _checked_noise(a.noise, a.noise, f"--noise {a.noise:g}")
         except ValueError as exc:
             ap.error(str(exc))
         textures = tuple(a.textures.split(","))
-        from emdflow.synthetic import load_texture
-
-        for texture in textures:
-            try:
-                load_texture(texture)
-            except ValueError as exc:
-                ap.error(f"--textures: {exc}")
-        evaluate(a.offset, a.random, a.frames, a.backend, a.save, a.data, a.model, a.contrast,
-                 a.drift, options, a.evidence_row_step, width, height, a.noise, textures,
-                 a.diagonal_evidence)
+        _check_textures(ap, textures, a.textures)
+        try:
+            evaluate(a.offset, a.random, a.frames, a.backend, a.save, a.data, a.model, a.contrast,
+                     a.drift, options, a.evidence_row_step, width, height, a.noise, textures,
+                     a.diagonal_evidence)
+        except ToolError as exc:
+            ap.error(str(exc))
 
 
 if __name__ == "__main__":

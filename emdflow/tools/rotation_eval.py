@@ -150,9 +150,13 @@ def main(argv=None) -> int:
     from emdflow.tools.video_io import parse_size
 
     t0 = time.time()
+    textures = tuple(t for t in a.textures.split(",") if t)
+    if not textures:  # (an empty table with exit 0 otherwise)
+        print(f"rotation_eval: --textures {a.textures!r}: name at least one ground", file=sys.stderr)
+        return 2
     try:
         width, height = parse_size(a.size)
-        rows = evaluate(model=a.model, fovs=a.fovs, textures=tuple(t for t in a.textures.split(",") if t),
+        rows = evaluate(model=a.model, fovs=a.fovs, textures=textures,
                         speed=a.speed, frames=a.frames, width=width, height=height, backend=a.backend)
     except ValueError as exc:
         print(f"rotation_eval: {exc}", file=sys.stderr)

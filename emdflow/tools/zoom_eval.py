@@ -409,15 +409,25 @@ def main(argv=None) -> int:
                     help="calibrate: write the tables to emdflow/cues_calibration.npz")
     a = ap.parse_args(argv)
     models = tuple(m for m in a.models.split(",") if m)
+    if not models:
+        ap.error(f"--models {a.models!r}: name at least one model; known: {', '.join(MODELS)}")
     bad = [m for m in models if m not in MODELS]
     if bad:
-        ap.error(f"unknown model(s) {', '.join(bad)}; known: {', '.join(MODELS)}")
+        ap.error(f"--models: unknown model(s) {', '.join(bad)}; known: {', '.join(MODELS)}")
+    # every option checked before the flights (not as a traceback minutes into the run)
+    if a.flights is not None and a.flights < 1:
+        ap.error(f"--flights {a.flights}: must be at least 1")
+    if a.frames < 1:
+        ap.error(f"--frames {a.frames}: must be at least 1")
+    if a.seed is not None and a.seed < 0:
+        ap.error(f"--seed {a.seed}: must be >= 0")
     t0 = time.time()
     if a.command == "calibrate":
         tables = {}
         for model in models:
             tables[model] = calibrate(
-                model, flights=a.flights or 2400, seed=20240610 if a.seed is None else a.seed,
+                model, flights=2400 if a.flights is None else a.flights,
+                seed=20240610 if a.seed is None else a.seed,
                 backend=a.backend,
                 progress=lambda k, n, m=model: print(f"{m}: {k}/{n} flights, {time.time() - t0:.0f} s",
                                                      file=sys.stderr, flush=True))
@@ -430,9 +440,23 @@ def main(argv=None) -> int:
             print(format_calibration(tables))
         return 0
     textures = tuple(t for t in a.textures.split(",") if t)
+    if not textures:
+        ap.error(f"--textures {a.textures!r}: name at least one photograph")
+    for texture in textures:
+        try:
+            texture_source(texture)
+        except ValueError as exc:
+            ap.error(f"--textures: {exc}")
+    bad_rates = [r for r in a.rates if not (math.isfinite(r) and r != 0.0 and r > -1.0)]
+    if bad_rates:
+        ap.error(f"--rates {','.join(f'{r:g}' for r in bad_rates)}: each must be a finite number "
+                 "> -1 and not 0 (scale growth per frame)")
+    if not all(math.isfinite(c) for uv in a.translations for c in uv):
+        ap.error("--translations: u,v must be finite numbers (px/frame)")
     results = evaluate(models=models, textures=textures, rates=a.rates,
                        translations=a.translations, frames=a.frames,
-                       flights=a.flights or 6, backend=a.backend, seed=1 if a.seed is None else a.seed)
+                       flights=6 if a.flights is None else a.flights, backend=a.backend,
+                       seed=1 if a.seed is None else a.seed)
     print(format_report(results))
     print(f"({time.time() - t0:.0f} s, backend {a.backend})")
     return 0

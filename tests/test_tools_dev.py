@@ -1,0 +1,162 @@
+"""The developer tools (``python -m emdflow.tools.zoom_eval``, ``calibrate_summary``,
+``rotation_eval``) refuse bad options and unwritable outputs up front: one line naming the
+option, exit code 2, no traceback, and no flight flown (the tools' long-running functions
+are replaced by stand-ins that fail the test when reached)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+
+def _never(*args, **kwargs):
+    raise AssertionError("the run started although an option was bad")
+
+
+def _refused(main, argv, capsys, option: str) -> str:
+    """Run ``main(argv)``: it must stop with exit code 2 and a message naming ``option``."""
+    capsys.readouterr()
+    try:
+        code = main(argv)
+    except SystemExit as exc:
+        code = exc.code
+    err = capsys.readouterr().err
+    assert code == 2, (argv, code, err)
+    assert option in err, (argv, err)
+    assert "Traceback" not in err
+    return err
+
+
+# ---- zoom_eval ----------------------------------------------------------------------------
+ZOOM = ["--models", "paper", "--textures", "gravel", "--translations", "0,0", "--frames", "1",
+        "--rates", "0.01", "--flights", "1"]
+
+
+@pytest.mark.parametrize("extra, option", [
+    (["--textures", "nope"], "--textures"),
+    (["--textures", ","], "--textures"),
+    (["--rates", "nan"], "--rates"),
+    (["--rates", "0"], "--rates"),
+    (["--seed", "-1"], "--seed"),
+    (["--models", ","], "--models"),
+    (["--flights", "0"], "--flights"),
+    (["--flights", "-1"], "--flights"),
+    (["--frames", "0"], "--frames"),
+])
+def test_zoom_eval_refuses_bad_options(monkeypatch, capsys, extra, option):
+    from emdflow.tools import zoom_eval
+
+    monkeypatch.setattr(zoom_eval, "evaluate", _never)
+    monkeypatch.setattr(zoom_eval, "calibrate", _never)
+    _refused(zoom_eval.main, ZOOM + extra, capsys, option)
+
+
+@pytest.mark.parametrize("extra, option", [(["--flights", "0"], "--flights"), (["--seed", "-1"], "--seed")])
+def test_zoom_eval_calibrate_refuses_bad_options(monkeypatch, capsys, extra, option):
+    from emdflow.tools import zoom_eval
+
+    monkeypatch.setattr(zoom_eval, "calibrate", _never)
+    _refused(zoom_eval.main, ["calibrate", "--models", "paper"] + extra, capsys, option)
+
+
+def test_zoom_eval_passes_the_flights_given(monkeypatch, capsys):
+    """``--flights`` is used as given (``a.flights or 6`` used to fly 6 for 0)."""
+    from emdflow.tools import zoom_eval
+
+    seen = {}
+
+    def evaluate(**kwargs):
+        seen.update(kwargs)
+        return {"_times": []}
+
+    monkeypatch.setattr(zoom_eval, "evaluate", evaluate)
+    monkeypatch.setattr(zoom_eval, "format_report", lambda results: "")
+    assert zoom_eval.main(ZOOM[:-1] + ["3"]) == 0
+    assert seen["flights"] == 3
+    assert zoom_eval.main(ZOOM[:-2]) == 0
+    assert seen["flights"] == 6
+
+
+def test_zoom_eval_bad_option_in_a_subprocess_has_no_traceback():
+    run = subprocess.run([sys.executable, "-m", "emdflow.tools.zoom_eval", *ZOOM, "--textures", "nope"],
+                         check=False, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2, run.stderr
+    assert "--textures" in run.stderr and "Traceback" not in run.stderr
+
+
+# ---- rotation_eval ------------------------------------------------------------------------
+@pytest.mark.parametrize("textures", ["", ","])
+def test_rotation_eval_refuses_no_ground(monkeypatch, capsys, textures):
+    """``--textures ""`` used to print an empty table with exit code 0."""
+    from emdflow.tools import rotation_eval
+
+    monkeypatch.setattr(rotation_eval, "evaluate", _never)
+    err = _refused(rotation_eval.main, ["--size", "96x72", "--frames", "1", "--fovs", "60",
+                                        "--textures", textures], capsys, "--textures")
+    assert "name at least one ground" in err
+
+
+# ---- calibrate_summary --------------------------------------------------------------------
+@pytest.fixture
+def cs(monkeypatch):
+    from emdflow.tools import calibrate_summary
+
+    for name in ("collect", "fit_main", "write_misfit", "margin_sweep", "render_evaluation", "score"):
+        monkeypatch.setattr(calibrate_summary, name, _never)
+    return calibrate_summary
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["collect", "--scale-range", "abc"], "--scale-range"),
+    (["collect", "--scale-range", "0,1"], "--scale-range"),
+    (["collect", "--contrast-range", "x"], "--contrast-range"),
+    (["collect", "--seed", "-1"], "--seed"),
+    (["collect", "--flights", "0"], "--flights"),
+    (["collect", "--frames", "0"], "--frames"),
+    (["collect", "--frames", "3"], "--frames"),  # the paper model's flights: no ready frame
+    (["fit", "no-such-file.npz"], "no-such-file.npz"),
+    (["misfit", "no-such-file.npz"], "no-such-file.npz"),
+    (["margin", "no-such-file.npz"], "no-such-file.npz"),
+    (["evaluate", "--data", "no-such-file.npz"], "--data"),
+    (["evaluate", "--size", "96x72", "--textures", "gravel", "--frames", "0"], "--frames"),
+    (["evaluate", "--size", "4x4", "--textures", "gravel", "--frames", "1"], "--size"),
+])
+def test_calibrate_summary_refuses_bad_options(cs, tmp_path, capsys, argv, option):
+    if argv[0] == "collect":
+        argv = argv + ["--out", str(tmp_path / "c.npz")]
+    _refused(cs.main, argv, capsys, option)
+    assert not (tmp_path / "c.npz").exists()
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["collect", "--flights", "1", "--frames", "5", "--out"], "--out"),
+    (["evaluate", "--size", "96x72", "--frames", "1", "--textures", "gravel", "--save"], "--save"),
+])
+def test_calibrate_summary_checks_outputs_before_the_run(cs, tmp_path, capsys, argv, option):
+    for bad in (tmp_path / "missing" / "x.npz", tmp_path):  # no such folder; a folder
+        _refused(cs.main, argv + [str(bad)], capsys, option)
+
+
+def test_calibrate_summary_writes_exactly_the_path_given(monkeypatch, tmp_path, capsys):
+    """An output without ``.npz`` is written under that name (numpy used to append .npz
+    while the tool printed the name without it, so ``fit`` on that name failed)."""
+    from emdflow.tools import calibrate_summary as cs
+
+    out = tmp_path / "flights.dat"
+    cs.collect(1, str(out), frames=4, width=64, height=48, textures=("moon",))
+    assert out.is_file() and not (tmp_path / "flights.dat.npz").exists()
+    assert str(out) in capsys.readouterr().err
+    with np.load(out) as d:
+        assert len(d["flow"]) == 1
+
+    flights = {"flow": np.zeros((2, 2)), "hist": np.zeros((2, 1), np.int32)}
+    monkeypatch.setattr(cs, "render_evaluation", lambda *args, **kwargs: flights)
+    monkeypatch.setattr(cs, "score", lambda *args, **kwargs: None)
+    saved = tmp_path / "evaluation.dat"
+    cs.evaluate(0.3, save=str(saved), textures=("gravel",))
+    assert saved.is_file() and not (tmp_path / "evaluation.dat.npz").exists()
+    with np.load(saved) as d:
+        assert d["flow"].shape == (2, 2)
