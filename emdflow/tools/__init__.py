@@ -59,6 +59,17 @@ def matplotlib_missing() -> str | None:
     return None
 
 
+def texture_names_problem(names, load) -> str | None:
+    """Why one of the ``--textures`` ``names`` cannot be flown over (``load(name)`` raises a
+    ValueError naming it), or None."""
+    for name in names:
+        try:
+            load(name)
+        except ValueError as exc:
+            return str(exc)
+    return None
+
+
 class ToolError(Exception):
     """A failure reported as one line on stderr with an exit code (2: bad input/usage)."""
 

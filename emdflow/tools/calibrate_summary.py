@@ -147,7 +147,7 @@ import numpy as np
 
 from emdflow.params import GRADIENT_CLASS_STEPS, ORIENTATION_BINS
 from emdflow.params import MODELS as _MODELS
-from emdflow.tools import ToolError, frame_size_problem, interp_weights, output_problem
+from emdflow.tools import ToolError, frame_size_problem, interp_weights, output_problem, texture_names_problem
 
 CALIBRATION_TEXTURES = ("moon", "coffee", "astronaut", "rocket")
 #: Kinds of ground a table is measured over (``fit --ground``): the photographs' edges, or
@@ -1017,11 +1017,8 @@ def _check_textures(ap, textures, text: str) -> None:
 
     if not all(textures):
         ap.error(f"--textures {text!r}: expected comma-separated texture names")
-    for texture in textures:
-        try:
-            load_texture(texture)
-        except ValueError as exc:
-            ap.error(f"--textures: {exc}")
+    if problem := texture_names_problem(textures, load_texture):
+        ap.error(f"--textures: {problem}")
 
 
 def main(argv=None):

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from emdflow.params import MODELS
-from emdflow.tools import interp_weights, number_list
+from emdflow.tools import interp_weights, number_list, texture_names_problem
 
 __all__ = [
     "CALIBRATION_TEXTURES",
@@ -442,11 +442,8 @@ def main(argv=None) -> int:
     textures = tuple(t for t in a.textures.split(",") if t)
     if not textures:
         ap.error(f"--textures {a.textures!r}: name at least one photograph")
-    for texture in textures:
-        try:
-            texture_source(texture)
-        except ValueError as exc:
-            ap.error(f"--textures: {exc}")
+    if problem := texture_names_problem(textures, texture_source):
+        ap.error(f"--textures: {problem}")
     bad_rates = [r for r in a.rates if not (math.isfinite(r) and r != 0.0 and r > -1.0)]
     if bad_rates:
         ap.error(f"--rates {','.join(f'{r:g}' for r in bad_rates)}: each must be a finite number "
