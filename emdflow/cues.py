@@ -397,7 +397,8 @@ def looming_cues(field: FlowField, *, min_detections: int = 50) -> LoomingCues:
     Returns
     -------
     LoomingCues
-        All zero / inf when the history is not full or evidence is too thin (no axis with
+        All zero / inf when the history is not full, a brightness step is in the templates
+        (:attr:`FlowField.exposure_step`) or evidence is too thin (no axis with
         ``min_detections`` detections in at least 4 of the 16 position bins).
 
     Raises
@@ -410,7 +411,8 @@ def looming_cues(field: FlowField, *, min_detections: int = 50) -> LoomingCues:
     if not isinstance(field, FlowField):  # (as summarize(): not an AttributeError from inside)
         raise TypeError(f"looming_cues() takes a FlowField, not {type(field).__name__}")
     field.require_evidence("looming_cues()")
-    if not field.ready or field.positions is None:
+    # (a brightness step in the templates: their detections are not motion, as for summarize())
+    if not field.ready or field.exposure_step or field.positions is None:
         return LoomingCues()
     pos = field.positions.astype(np.float64)  # (axis, code, bin)
     counts = pos.sum(axis=1)  # (axis, bin)

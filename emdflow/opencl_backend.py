@@ -110,14 +110,16 @@ def device_label(device) -> str:
 def _device_choice(device):
     """The caller's device choice, else EMDFLOW_OPENCL_DEVICE's; None: automatic. A
     choice is an index (an int, numpy's too, or a string of digits) or a name (a str);
-    anything else (True, 1.5, a list) is a TypeError rather than a guess."""
+    anything else (True, 1.5, a list) is a TypeError rather than a guess. An empty or blank
+    name is no choice (the variable then applies; " " matched any name with a space)."""
     if device is not None:
         if _is_whole(device):
             return int(device)
         if not isinstance(device, str):
             raise TypeError(f"device={device!r}: expected an index (int) or part of a device name (str)")
-        return device or None
-    choice = os.environ.get("EMDFLOW_OPENCL_DEVICE")
+        if device.strip():
+            return device.strip()
+    choice = os.environ.get("EMDFLOW_OPENCL_DEVICE", "").strip()
     return choice or None
 
 
@@ -399,8 +401,9 @@ def _device_with_program(device, layout: _Layout, debug: bool):
             raise KernelBuildError(f"no OpenCL context on {dev.name.strip()}: {exc}") from exc
         return ctx, queue, _program(ctx, dev, layout, debug)
 
+    from_env = device is None or (isinstance(device, str) and not device.strip())
     chosen, (ctx, queue, program) = _first_buildable(
-        [_pick_device(choice, from_env=device is None)] if choice is not None else _all_devices(), build)
+        [_pick_device(choice, from_env=from_env)] if choice is not None else _all_devices(), build)
     return chosen, ctx, queue, program
 
 

@@ -229,8 +229,11 @@ def test_opencl_devices_and_device_choice(monkeypatch):
         with pytest.raises(TypeError, match="expected an index"):
             emdflow.FlowEstimator(64, 48, device=bad)
     monkeypatch.setenv("EMDFLOW_OPENCL_DEVICE", "no-such-device")
-    with pytest.raises(ValueError, match=r"no-such-device.*\(EMDFLOW_OPENCL_DEVICE\)"):
-        emdflow.FlowEstimator(64, 48)
+    # (an empty or blank name is no choice: the variable applies; "" skipped it and " "
+    # matched any name with a space)
+    for no_choice in (None, "", " "):
+        with pytest.raises(ValueError, match=r"no-such-device.*\(EMDFLOW_OPENCL_DEVICE\)"):
+            emdflow.FlowEstimator(64, 48, device=no_choice)
     monkeypatch.setenv("EMDFLOW_OPENCL_DEVICE", "7")
     with pytest.raises(ValueError, match=r"7 \(EMDFLOW_OPENCL_DEVICE\) out of range"):
         emdflow.FlowEstimator(64, 48)

@@ -109,6 +109,24 @@ def test_uncalibrated_line_fit_beyond_the_rate_limit_is_no_cue():
     assert fits > 0
 
 
+def test_no_cue_while_a_brightness_step_is_in_the_templates():
+    """The frames whose templates hold a global brightness step give no cue, as they give
+    quality 0 in the summary (their detections are the step's, not motion)."""
+    flight = CameraFlight("gravel", width=W, height=H, flow=(0, 0), expansion_rate=0.02, supersample=2, seed=2)
+    est = emdflow.FlowEstimator(W, H)
+    flagged = 0
+    for t in range(14):
+        frame = flight.render(t).astype(np.float64) * (1.4 if t >= 9 else 1.0)
+        field = est.update(np.clip(frame, 0, 255).astype(np.uint8))
+        cue = looming_cues(field)
+        if field.exposure_step:
+            flagged += 1
+            assert cue.detections == 0 and cue.expansion_rate == 0.0
+        elif field.ready and t >= 12:
+            assert cue.detections > 0  # (the cue comes back after the step)
+    assert flagged == 3
+
+
 def test_cue_of_something_that_is_no_field_is_a_type_error():
     for thing in (None, np.zeros((4, 4))):
         with pytest.raises(TypeError, match=r"looming_cues\(\) takes a FlowField, not "):
