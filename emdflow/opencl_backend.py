@@ -107,20 +107,20 @@ def device_label(device) -> str:
     return f"{device.platform.name.strip()}: {device.name.strip()}"
 
 
-def _device_choice(device):
-    """The caller's device choice, else EMDFLOW_OPENCL_DEVICE's; None: automatic. A
-    choice is an index (an int, numpy's too, or a string of digits) or a name (a str);
-    anything else (True, 1.5, a list) is a TypeError rather than a guess. An empty or blank
-    name is no choice (the variable then applies; " " matched any name with a space)."""
+def _device_choice(device) -> tuple:
+    """``(choice, from_env)``: the caller's device choice, else EMDFLOW_OPENCL_DEVICE's
+    (``from_env`` True); choice None: automatic. A choice is an index (an int, numpy's too,
+    or a string of digits) or a name (a str); anything else (True, 1.5, a list) is a
+    TypeError rather than a guess. An empty or blank name is no choice (the variable then
+    applies; " " matched any name with a space)."""
     if device is not None:
         if _is_whole(device):
-            return int(device)
+            return int(device), False
         if not isinstance(device, str):
             raise TypeError(f"device={device!r}: expected an index (int) or part of a device name (str)")
         if device.strip():
-            return device.strip()
-    choice = os.environ.get("EMDFLOW_OPENCL_DEVICE", "").strip()
-    return choice or None
+            return device.strip(), False
+    return os.environ.get("EMDFLOW_OPENCL_DEVICE", "").strip() or None, True
 
 
 def _pick_device(choice, *, from_env: bool = False):
@@ -392,7 +392,7 @@ def _device_with_program(device, layout: _Layout, debug: bool):
     EMDFLOW_OPENCL_DEVICE, else the first one (in ``list_devices()`` order) that builds the
     kernels."""
     cl = _import_cl()
-    choice = _device_choice(device)
+    choice, from_env = _device_choice(device)
 
     def build(dev):
         try:
@@ -401,7 +401,6 @@ def _device_with_program(device, layout: _Layout, debug: bool):
             raise KernelBuildError(f"no OpenCL context on {dev.name.strip()}: {exc}") from exc
         return ctx, queue, _program(ctx, dev, layout, debug)
 
-    from_env = device is None or (isinstance(device, str) and not device.strip())
     chosen, (ctx, queue, program) = _first_buildable(
         [_pick_device(choice, from_env=from_env)] if choice is not None else _all_devices(), build)
     return chosen, ctx, queue, program

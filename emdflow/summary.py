@@ -1185,7 +1185,7 @@ def _looks_static(field: FlowField, opts: "SummaryOptions") -> bool:
         return True
     if params.threshold_mode != "adaptive":
         return False
-    scales = sorted(params.scales)
+    scales = params.scales  # (sorted by EngineParams)
     coarse_scale = next((k for k in scales if k >= STATIC_SCALE), scales[-1])
     if coarse_scale == scales[0]:
         return False

@@ -114,109 +114,103 @@ def _run_demo(*, frames, config_path, source, seconds, backend, size, focal_leng
     from .sources import SourceError
     from .sources.synthetic import SyntheticSource
 
-    master = slave = None
+    ptys: list[int] = []  # the pseudo-terminal's two ends, closed however the demo ends
     try:
-        config = load_config(config_path)
-        config.set("source", "uri", source or (config.source.uri if config_path else DEMO_SOURCE))
-        config.source.realtime = True
-        config.frames = frames
-        if backend:
-            config.set("engine", "backend", backend)
-        if size:
-            config.set("source", "width", int(size[0]))
-            config.set("source", "height", int(size[1]))
-        if focal_length_px is not None:
-            config.set("optics", "focal_length_px", focal_length_px, origin="command line")
-        if frames is not None and frames < 1:
-            raise ConfigError(f"command line: --frames {frames}: must be >= 1")
-        master, slave = os.openpty()
-        # the demo's link is its own: MAVLink for ArduPilot into its pseudo-terminal, none
-        # of the file's [link] keys (an MSP protocol, a flight's message log) apply
-        config.link = LinkConfigSection()
-        config.set("link", "port", os.ttyname(slave))
-        config.set("link", "baud", DEMO_BAUD)
-        config.set("link", "autopilot", "ardupilot")
-        config.validate()
-        truth_source = None
-        if config.source.uri.startswith("synthetic:"):
-            # (a texture that does not exist fails here first: exit 2 like emdflowd's, no traceback)
-            truth_source = SyntheticSource(config.source.uri.partition(":")[2],
-                                           width=config.source.width or 320,
-                                           height=config.source.height or 240, fps=config.source.fps or 100.0)
-    except (ConfigError, SourceError) as exc:
-        log.error("%s", exc)
-        for fd in (master, slave):
-            if fd is not None:
-                os.close(fd)
-        return 2
-    try:
-        fell_back = not backend and config.engine.backend == "opencl" and _fall_back_without_opencl(config, out)
-    except BaseException:  # (its printing may meet a closed stdout: run_demo ends the demo)
-        os.close(master)
-        os.close(slave)
-        raise
-    daemon = Daemon(config)
-    result: dict = {}
-
-    def _run():
         try:
-            result["code"] = daemon.run()
-        except Exception as exc:  # reported below; the reader must not hang
-            result["error"] = exc
-        finally:
-            daemon.running.set()
+            config = load_config(config_path)
+            config.set("source", "uri", source or (config.source.uri if config_path else DEMO_SOURCE))
+            config.source.realtime = True
+            config.frames = frames
+            if backend:
+                config.set("engine", "backend", backend)
+            if size:
+                config.set("source", "width", int(size[0]))
+                config.set("source", "height", int(size[1]))
+            if focal_length_px is not None:
+                config.set("optics", "focal_length_px", focal_length_px, origin="command line")
+            if frames is not None and frames < 1:
+                raise ConfigError(f"command line: --frames {frames}: must be >= 1")
+            master, slave = os.openpty()
+            ptys += [master, slave]
+            # the demo's link is its own: MAVLink for ArduPilot into its pseudo-terminal, none
+            # of the file's [link] keys (an MSP protocol, a flight's message log) apply
+            config.link = LinkConfigSection()
+            config.set("link", "port", os.ttyname(slave))
+            config.set("link", "baud", DEMO_BAUD)
+            config.set("link", "autopilot", "ardupilot")
+            config.validate()
+            truth_source = None
+            if config.source.uri.startswith("synthetic:"):
+                # (a texture that does not exist fails here first: exit 2 like emdflowd's, no traceback)
+                truth_source = SyntheticSource(config.source.uri.partition(":")[2],
+                                               width=config.source.width or 320,
+                                               height=config.source.height or 240, fps=config.source.fps or 100.0)
+        except (ConfigError, SourceError) as exc:
+            log.error("%s", exc)
+            return 2
+        fell_back = not backend and config.engine.backend == "opencl" and _fall_back_without_opencl(config, out)
+        daemon = Daemon(config)
+        result: dict = {}
 
-    thread = threading.Thread(target=_run, name="emdflowd-demo", daemon=True)
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
-    reader = _WireReader(master)
-    thread.start()
-    start = time.monotonic()
-    try:  # (a print may raise BrokenPipeError: the daemon is stopped below all the same)
-        daemon.running.wait(120.0)  # the first OpenCL build may take a while
-        start = time.monotonic()
-        if daemon.width and "error" not in result:
-            # after the source is made: its size is the one processed (a video's own, unless
-            # [source] width and height are set), not the flight's default
-            print(f"emdflowd demo: {config.source.uri} {daemon.width}x{daemon.height} "
-                  f"-> {config.engine.backend} engine -> MAVLink OPTICAL_FLOW on {config.link.port} "
-                  f"-> pymavlink; {'%d frames' % frames if frames else '%g s' % seconds}", file=out, flush=True)
-        if thread.is_alive():
-            print(_HEADER, file=out, flush=True)
-        next_row = start + 1.0
-        last_processed, last_msgs, last_latency = 0, 0, 0
-        while not stop.is_set() and thread.is_alive():
-            reader.poll(0.02)
-            now = time.monotonic()
-            # (with --frames the daemon ends the run; a source that has delivered nothing by
-            # the demo's time never will in the demo: a camera that is absent or will not open)
-            if now - start >= seconds and (frames is None or daemon.stats.frames_in == 0):
-                break
-            if now >= next_row:
-                processed = daemon.stats.processed
-                msgs = reader.counts.get("OPTICAL_FLOW", 0)
-                latencies = daemon.latency_snapshot(last_latency)
-                print(_row(now - start, processed - last_processed, msgs - last_msgs, reader, daemon,
-                           truth_source, latencies), file=out, flush=True)
-                last_processed, last_msgs = processed, msgs
-                last_latency += len(latencies)
-                next_row += 1.0
+        def _run():
+            try:
+                result["code"] = daemon.run()
+            except Exception as exc:  # reported below; the reader must not hang
+                result["error"] = exc
+            finally:
+                daemon.running.set()
+
+        thread = threading.Thread(target=_run, name="emdflowd-demo", daemon=True)
+        stop = threading.Event()
+        previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+        reader = _WireReader(master)
+        thread.start()
+        try:  # (a print may raise BrokenPipeError: the daemon is stopped below all the same)
+            daemon.running.wait(120.0)  # the first OpenCL build may take a while
+            start = time.monotonic()
+            if daemon.width and "error" not in result:
+                # after the source is made: its size is the one processed (a video's own, unless
+                # [source] width and height are set), not the flight's default
+                print(f"emdflowd demo: {config.source.uri} {daemon.width}x{daemon.height} "
+                      f"-> {config.engine.backend} engine -> MAVLink OPTICAL_FLOW on {config.link.port} "
+                      f"-> pymavlink; {'%d frames' % frames if frames else '%g s' % seconds}", file=out, flush=True)
+            if thread.is_alive():
+                print(_HEADER, file=out, flush=True)
+            next_row = start + 1.0
+            last_processed, last_msgs, last_latency = 0, 0, 0
+            while not stop.is_set() and thread.is_alive():
+                reader.poll(0.02)
+                now = time.monotonic()
+                # (with --frames the daemon ends the run; a source that has delivered nothing by
+                # the demo's time never will in the demo: a camera that is absent or will not open)
+                if now - start >= seconds and (frames is None or daemon.stats.frames_in == 0):
+                    break
+                if now >= next_row:
+                    processed = daemon.stats.processed
+                    msgs = reader.counts.get("OPTICAL_FLOW", 0)
+                    latencies = daemon.latency_snapshot(last_latency)
+                    print(_row(now - start, processed - last_processed, msgs - last_msgs, reader, daemon,
+                               truth_source, latencies), file=out, flush=True)
+                    last_processed, last_msgs = processed, msgs
+                    last_latency += len(latencies)
+                    next_row += 1.0
+        finally:
+            daemon.stop()
+            thread.join(timeout=10.0)
+            end = time.monotonic()
+            reader.poll(0.05)
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+        if "error" in result:
+            error = result["error"]
+            print(f"demo failed: {error}", file=out, flush=True)
+            # as emdflowd's: a source or setting that cannot work is a usage error (2), not a failure
+            return 2 if isinstance(error, (ConfigError, SourceError)) else 1
+        return _summary(end - start, reader, daemon, truth_source, out, result.get("code", 1), fell_back,
+                        config.source.uri)
     finally:
-        daemon.stop()
-        thread.join(timeout=10.0)
-        end = time.monotonic()
-        reader.poll(0.05)
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-        os.close(master)
-        os.close(slave)
-    if "error" in result:
-        error = result["error"]
-        print(f"demo failed: {error}", file=out, flush=True)
-        # as emdflowd's: a source or setting that cannot work is a usage error (2), not a failure
-        return 2 if isinstance(error, (ConfigError, SourceError)) else 1
-    return _summary(end - start, reader, daemon, truth_source, out, result.get("code", 1), fell_back,
-                    config.source.uri)
+        for fd in ptys:
+            os.close(fd)
 
 
 def _fall_back_without_opencl(config, out) -> bool:

@@ -40,8 +40,9 @@ import ast
 import contextlib
 
 __all__ = ["DIS_MIN_LONG_SIDE", "ToolError", "add_engine_arguments", "check_positive", "engine_kwargs",
-           "frame_size_problem", "interp_weights", "make_estimator", "matplotlib_missing", "missing_folder",
-           "number_list", "output_problem", "plot_type_problem", "progress_bar", "refuse_same_outputs"]
+           "frame_size_problem", "interp_weights", "keyword_options", "make_estimator", "matplotlib_missing",
+           "missing_folder", "number_list", "output_problem", "plot_type_problem", "progress_bar",
+           "refuse_same_outputs", "texture_names_problem"]
 
 #: OpenCV DIS (preset ULTRAFAST, patches of 8 px) needs a frame whose longer side is at
 #: least this many px (measured with OpenCV 5.0 for every size from 8x8 to 79x79: it
@@ -274,11 +275,20 @@ def engine_kwargs(args) -> dict:
     device = getattr(args, "device", None)
     if device is not None:
         kw["device"] = int(device) if device.isdigit() else device
-    for item in getattr(args, "engine_opt", []) or []:
+    kw.update(keyword_options(getattr(args, "engine_opt", []) or [], "--engine-opt"))
+    return kw
+
+
+def keyword_options(items, option: str) -> dict:
+    """``KEY=VALUE`` items of ``option`` as keywords: each value a Python literal where it
+    reads as one (``False``, ``3``, ``(1, 2)``), else the text; a dash in a key is an
+    underscore. Raises ToolError (code 2) naming the option for an item without ``=``."""
+    kw = {}
+    for item in items:
         key, sep, text = item.partition("=")
         key = key.strip().replace("-", "_")
         if not sep or not key.isidentifier():
-            raise ToolError(f"--engine-opt {item!r}: expected KEY=VALUE", 2)
+            raise ToolError(f"{option} {item!r}: expected KEY=VALUE", 2)
         try:
             kw[key] = ast.literal_eval(text)
         except (ValueError, SyntaxError):

@@ -43,7 +43,6 @@ side) and the same public API (``FlowEstimator``, ``emdflow.params.MODELS``).
 from __future__ import annotations
 
 import argparse
-import ast
 import importlib.util
 import statistics
 import sys
@@ -126,20 +125,13 @@ def main(argv=None) -> int:
                     help="time summarize() on each engine's fields instead of update()")
     a = ap.parse_args(argv)
 
-    def keywords(items, flag):
-        out = {}
-        for item in items:
-            key, sep, text = item.partition("=")
-            if not sep or not key.isidentifier():
-                ap.error(f"{flag} {item!r}: expected KEY=VALUE, e.g. evidence_row_step=1")
-            try:
-                out[key] = ast.literal_eval(text)
-            except (ValueError, SyntaxError):
-                out[key] = text
-        return out
+    from emdflow.tools import ToolError, keyword_options
 
-    options = keywords(a.other_option, "--other-option")
-    shared = keywords(a.option, "--option")
+    try:
+        options = keyword_options(a.other_option, "--other-option")
+        shared = keyword_options(a.option, "--option")
+    except ToolError as exc:
+        ap.error(str(exc))
     from emdflow.tools.video_io import parse_size
 
     try:

@@ -114,6 +114,20 @@ def parse_device(target: str) -> str | int:
     raise SourceError(f"v4l2 device {target!r}: expected /dev/videoN, a /dev/ symlink or an index N")
 
 
+def _not_a_camera(path: Path) -> str | None:
+    """What an existing ``path`` is if it cannot be a V4L2 camera, else None. The major
+    number is Linux's: elsewhere (FreeBSD's webcamd) any character device may be one."""
+    info = path.stat()
+    if stat.S_ISDIR(info.st_mode):
+        return "a directory"
+    if not stat.S_ISCHR(info.st_mode):
+        return "not a device"
+    major = os.major(info.st_rdev)
+    if sys.platform.startswith("linux") and major != V4L2_MAJOR:
+        return f"a character device of major {major}, not V4L2's {V4L2_MAJOR}"
+    return None
+
+
 class V4L2Source(FrameSource):
     """A V4L2 camera.
 
@@ -180,13 +194,7 @@ class V4L2Source(FrameSource):
                 raise SourceError(f"{self.uri}: {self.device} does not exist (camera unplugged?)")
             # a path that is there but no V4L2 device (a folder, a file, /dev/null) never
             # becomes a camera: a setting to fix, not a camera to wait for
-            info = path.stat()
-            # (the major number is Linux's: elsewhere, e.g. FreeBSD's webcamd, any character
-            # device may be a camera)
-            linux = sys.platform.startswith("linux")
-            if not stat.S_ISCHR(info.st_mode) or (linux and os.major(info.st_rdev) != V4L2_MAJOR):
-                what = ("a directory" if path.is_dir() else "not a device" if not stat.S_ISCHR(info.st_mode)
-                        else f"a character device of major {os.major(info.st_rdev)}, not V4L2's {V4L2_MAJOR}")
+            if what := _not_a_camera(path):
                 raise SourceConfigError(f"{self.uri}: {self.device} is {what}: expected a camera, "
                                         "/dev/videoN or a /dev/ symlink to one")
         try:
