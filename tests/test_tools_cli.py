@@ -866,3 +866,21 @@ def test_a_cut_off_video_is_read_to_its_end_with_one_warning(tmp_path, capfd, ba
     assert 1 <= len(rows) < 28
     assert f"{cut}: the video ended after {len(rows)} of the 30 frames its container declares" in err
     assert "[ffv1" not in err
+
+
+@pytest.mark.parametrize("module", ["emdflow.tools.video_io", "firmware_py.sources.video"])
+def test_ffmpeg_log_is_quiet_unless_asked_for(module):
+    """FFV1 decodes in worker threads that log after read() returned, past the stderr
+    redirect, so FFmpeg's level is set before OpenCV's backend reads it (once, at its first
+    file); a level the user set, or EMDFLOW_DEBUG, keeps FFmpeg's messages."""
+    probe = f"import os, {module}; print(os.environ.get('OPENCV_FFMPEG_LOGLEVEL'))"
+
+    def level_seen(**env):
+        base = {k: v for k, v in _env().items() if k not in ("OPENCV_FFMPEG_LOGLEVEL", "EMDFLOW_DEBUG")}
+        r = subprocess.run([sys.executable, "-c", probe], env={**base, **env}, capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
+        return r.stdout.strip()
+
+    assert level_seen() == "-8"
+    assert level_seen(OPENCV_FFMPEG_LOGLEVEL="24") == "24"
+    assert level_seen(EMDFLOW_DEBUG="1") == "None"

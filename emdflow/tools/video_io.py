@@ -38,6 +38,7 @@ __all__ = [
     "FrameSource",
     "open_frames",
     "parse_synthetic",
+    "quiet_ffmpeg_log",
     "SYNTHETIC_DEFAULTS",
     "VideoWriter",
     "codec_for",
@@ -107,6 +108,22 @@ def list_image_files(folder) -> list[Path]:
     folder = Path(folder)
     files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS]
     return sorted(files, key=lambda p: _natural_key(p.name))
+
+
+def quiet_ffmpeg_log() -> None:
+    """Keep FFmpeg's own log (``[ffv1 @ 0x…] Slice pointer chain broken`` for every damaged
+    frame) off stderr, unless ``EMDFLOW_DEBUG`` or ``OPENCV_FFMPEG_LOGLEVEL`` is set.
+
+    OpenCV reads ``OPENCV_FFMPEG_LOGLEVEL`` once, when its FFmpeg backend first opens a file,
+    so this runs when the modules that read video are imported. Redirecting file descriptor 2
+    around ``read()`` is not enough: FFV1 decodes in worker threads, which log after
+    ``read()`` has returned.
+    """
+    if not os.environ.get("EMDFLOW_DEBUG"):
+        os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
+
+
+quiet_ffmpeg_log()
 
 
 @contextlib.contextmanager

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from emdflow.tools.video_io import quiet_ffmpeg_log
 
 from ..clock import host_us
 from .base import Frame, FrameSource, Pacer, SourceError, fit_to
@@ -23,6 +24,7 @@ from .base import Frame, FrameSource, Pacer, SourceError, fit_to
 __all__ = ["VideoFileSource", "probe_video", "is_gray_stream"]
 
 log = logging.getLogger("emdflowd.video")
+quiet_ffmpeg_log()  # a damaged file: FFmpeg's lines per frame would flood the journal
 
 #: Frames a container's declared count may be off by without meaning a cut-off file.
 _DECLARED_SLACK = 2
