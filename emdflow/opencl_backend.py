@@ -248,8 +248,8 @@ class _Layout:
         self.P_SLOTS = params.max_delay + 1
         self.P_SIZE = self.PSTRIDE * height  # one slot of the prefiltered image
         self.SAT_SLOTS = 1 + max((d for k, d in params.channels if k > 1), default=0)
-        # difference table S_t - S_(t-1) for the delay-1 channels at scales 3..11
-        self.DSAT = int(any(d == 1 and 1 < k <= 11 for k, d in params.channels))
+        # difference table S_t - S_(t-1) for the delay-1 channels at scales 3 and up
+        self.DSAT = int(any(d == 1 and 1 < k for k, d in params.channels))
         chans = params.channels  # (at most 15: EngineParams checks it)
         self.channels = chans
         self.rings = [2 * d + 1 for _, d in chans]

@@ -8,7 +8,7 @@
  *   P_SIZE, P_SLOTS one slot of P (PSTRIDE * H) and the frames of P kept (max delay + 1)
  *   SSTRIDE, SPAD   row stride and left padding of the summed-area tables (ushort, H + 1 rows)
  *   SAT_SLOTS       summed-area tables kept (max delay of the scales > 1, plus 1)
- *   DSAT            1 if some channel has D = 1 and 1 < k <= 11: integral_rows also writes the
+ *   DSAT            1 if some channel has D = 1 and k > 1: integral_rows also writes the
  *                   difference table S_t - S_(t-1) that ternary_states reads for them
  *   NCH             channels (scale, delay), sorted by increasing speed
  *   COMPENSATE      1 for brightness compensation (EngineParams.brightness_compensation)

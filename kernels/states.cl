@@ -6,6 +6,8 @@
  *   for D = 1 and 1 < k <= 11, now - then is one box sum of the difference table dsat
  *   (= S_t - S_(t-1), see integral_rows): |now - then| <= 121 * 255 < 2^15, so the
  *   wrapped box sum read as int16 is exact (4 loads from one table instead of 8 from two);
+ *   for D = 1 and k = 13, 15 the same box sum is exact in every word whose lanes stay
+ *   within 65535 - 255 k^2 (wrapped_difference32), and the rare other words read both;
  *   for k = 1 the receptor is the prefiltered pixel itself: P_t - P_(t-D) from the ring
  *   of prefiltered frames (the slow channels of the extended model), compared byte-wise
  *   with saturating subtractions, 32 pixels at a time (exceeds32 in common.cl);
@@ -120,6 +122,23 @@ inline uint above32_u16(ushort16 now0, ushort16 then0, ushort16 now1, ushort16 t
                    as_short16(subs_u16(subs_u16(now1, Tv), then1)) == z);
 }
 
+/* k = 13, 15 with D = 1: now - then for 32 pixels from the difference table. Its box sum is
+ * now - then wrapped to 16 bits; as |now - then| <= 255 k^2, a wrapped value d16 with
+ * |d16| <= 65535 - 255 k^2 is the true one (d16 -+ 65536 would be out of range). False,
+ * with nothing written, if a lane is beyond that (a change of more than 132 gray levels on
+ * average over the box at k = 13, 36 at k = 15): the caller then reads both tables. */
+inline bool wrapped_difference32(__global const ushort *dsat, int y, int x, int r, int T, uint *pw, uint *nw)
+{
+    const int k = 2 * r + 1;
+    const short lim = (short)(65535 - 255 * k * k), Ts = (short)CLAMPI(T, 0, 32767);
+    const short16 d0 = as_short16(box16(dsat, y, x, r)), d1 = as_short16(box16(dsat, y, x + 16, r));
+    if (pack32((d0 > lim) | (d0 < (short)-lim), (d1 > lim) | (d1 < (short)-lim)))
+        return false;
+    *pw = pack32(d0 > Ts, d1 > Ts);
+    *nw = pack32(d0 < (short)-Ts, d1 < (short)-Ts);
+    return true;
+}
+
 __kernel void ternary_states(__global const ushort *sat, __global const ushort *dsat, __global uint *planes,
                              __global const uchar *P, __global const uchar *frame,
                              __global char *result, int t, int theta_q, __global const uint *bright)
@@ -181,6 +200,8 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
                     }
                     upw = pack32(d0 > Ts, d1 > Ts);
                     unw = pack32(d0 < (short)-Ts, d1 < (short)-Ts);
+                } else if (D == 1 && wrapped_difference32(dsat, y, x, r, T, &upw, &unw)) {
+                    /* (4 loads a half instead of 8) */
                 } else {
                     const ushort16 now0 = box16(S_now, y, x, r), then0 = box16(S_then, y, x, r);
                     const ushort16 now1 = box16(S_now, y, x + 16, r), then1 = box16(S_then, y, x + 16, r);

@@ -145,6 +145,26 @@ def test_structured_edges_every_direction_and_polarity(direction, polarity):
     assert fired > 0
 
 
+@pytest.mark.parametrize("scales", [(1, 13), (3, 7, 15)])
+def test_large_changes_at_the_widest_scales(scales):
+    """At k = 13 and 15 a one-frame change is read from the difference table, wrapped to 16
+    bits and exact only within 65535 - 255 k^2 (a box change of more than 132 gray levels
+    per pixel at k = 13, 36 at k = 15 is not): squares that switch between black and white
+    over noise put words on both sides of that limit, and every word must give the states of
+    the reference."""
+    width, height = 101, 67
+    yy, xx = np.mgrid[0:height, 0:width]
+    rng = np.random.default_rng(11)
+    frames = []
+    for t in range(8):
+        frame = rng.normal(128, 25, (height, width))
+        square = (np.abs(xx - 25 - 3 * t) < 18) & (np.abs(yy - 30) < 18)
+        frame[square] = 255 if t % 2 else 0
+        frame[:, 70:] = 255 * ((t // 2) % 2)  # a whole strip steps as well
+        frames.append(np.clip(frame, 0, 255).astype(np.uint8))
+    _compare(width, height, frames, EngineParams(scales=scales, threshold=2.0))
+
+
 @pytest.mark.parametrize(
     "params",
     [
