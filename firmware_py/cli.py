@@ -70,6 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Run 'emdflowd --demo' first: a synthetic flight, no hardware. "
                "Every option can also be set in the --config file (see deploy/emdflow.toml).",
     )
+    from emdflow import __version__
+
+    p.add_argument("--version", action="version", version=f"emdflowd {__version__}")
     p.add_argument("--config", metavar="FILE", help="TOML configuration file (flags override it)")
     p.add_argument("--log-level", metavar="LEVEL", type=str.upper,
                    choices=("DEBUG", "INFO", "WARNING", "ERROR"), help="DEBUG, INFO, WARNING or ERROR")

@@ -235,6 +235,14 @@ def test_demo_takes_the_focal_length_and_refuses_link_options(tmp_path):
 
 # -- logging: journald's format only on systemd's own stream -------------------------------
 
+def test_version_is_the_packages():
+    """What a field report quotes: the daemon's version is the installed package's."""
+    from emdflow import __version__
+
+    r = run_cli(["--version"])
+    assert r.returncode == 0 and r.stdout.strip() == f"emdflowd {__version__}", r.stderr
+
+
 def test_stderr_is_journal_compares_device_and_inode(monkeypatch):
     from firmware_py.cli import stderr_is_journal
 
