@@ -131,6 +131,28 @@ def test_calibrate_summary_refuses_bad_options(cs, tmp_path, capsys, argv, optio
     assert not (tmp_path / "c.npz").exists()
 
 
+@pytest.mark.parametrize("content, problem", [
+    (b"", "not a NumPy .npz archive"),
+    (b"hist,flow\n1,2\n", "not a NumPy .npz archive"),
+    ("one array", "one NumPy array, not an .npz archive"),
+    ("no flow", "no 'stats' or 'flow' array in it"),
+])
+@pytest.mark.parametrize("command", ["fit", "misfit", "margin", "evaluate"])
+def test_calibrate_summary_names_a_file_that_holds_no_flights(cs, tmp_path, capsys, command, content, problem):
+    """An empty, foreign or incomplete data file is one line naming it (it was a zipfile
+    or EOFError traceback from deep inside the command)."""
+    path = tmp_path / "flights.npz"
+    if content == "one array":
+        with open(path, "wb") as f:
+            np.save(f, np.zeros(3))
+    elif content == "no flow":
+        np.savez(path, hist=np.zeros((1, 2, 2, 64)))
+    else:
+        path.write_bytes(content)
+    argv = [command, "--data", str(path)] if command == "evaluate" else [command, str(path)]
+    _refused(cs.main, argv, capsys, f"{path}: {problem}")
+
+
 @pytest.mark.parametrize("argv, option", [
     (["collect", "--flights", "1", "--frames", "5", "--out"], "--out"),
     (["evaluate", "--size", "96x72", "--frames", "1", "--textures", "gravel", "--save"], "--save"),

@@ -203,6 +203,31 @@ def _stored_shape(path, name: str) -> tuple[int, ...]:
         return header(f)[0]
 
 
+#: The arrays every file of stored flights holds (``collect --out``, ``evaluate --save``).
+STORED_ARRAYS = ("hist", "stats", "flow")
+
+
+def stored_flights_problem(path) -> str | None:
+    """Why ``path`` is not a file of stored flights, or None (reads the archive's directory
+    only, not its arrays)."""
+    import zipfile
+
+    if not Path(path).is_file():
+        return "no such file"
+    try:
+        stored = np.load(path)
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        return f"not a NumPy .npz archive ({exc})"
+    if not isinstance(stored, np.lib.npyio.NpzFile):
+        return "one NumPy array, not an .npz archive of stored flights"
+    with stored:
+        missing = [name for name in STORED_ARRAYS if name not in stored.files]
+    if missing:
+        return (f"no {' or '.join(repr(m) for m in missing)} array in it "
+                "(not written by collect --out or evaluate --save)")
+    return None
+
+
 def has_diagonal(data) -> bool:
     """Whether the stored flights ``data`` (paths) carry the diagonal detectors' histogram
     axes (all of them, or none: SystemExit on a mixture)."""
@@ -963,11 +988,11 @@ def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: 
     Raises
     ------
     ToolError
-        Code 2 when the file ``data`` does not exist.
+        Code 2 when the file ``data`` does not exist or holds no stored flights.
     """
     if data:
-        if not Path(data).is_file():
-            raise ToolError(f"--data {data}: no such file", 2)
+        if problem := stored_flights_problem(data):
+            raise ToolError(f"--data {data}: {problem}", 2)
         with np.load(data) as z:
             flights = {k: z[k] for k in z.files}
         label = data
@@ -1109,8 +1134,8 @@ def main(argv=None):
     # an error after all of them)
     if a.cmd in ("fit", "misfit", "margin"):
         for path in a.data:
-            if not Path(path).is_file():
-                ap.error(f"data {path}: no such file")
+            if problem := stored_flights_problem(path):
+                ap.error(f"data {path}: {problem}")
     if a.cmd == "collect":
         textures = tuple(a.textures.split(","))
         bad = set(textures) & set(EVALUATION_TEXTURES)
