@@ -315,3 +315,46 @@ def test_a_port_that_fails_right_after_each_open_is_retried_ever_more_slowly(tmp
     finally:
         transport.close()
         peer.close()
+
+
+@pytest.mark.parametrize("autopilot", ["ardupilot", "px4"])
+def test_a_reopened_port_gets_nothing_from_while_it_was_away(tmp_path, autopilot):
+    """The reports queued while the port was gone are dropped at the reopen, and the first
+    report on the new connection has quality 0: its counts began before the autopilot's new
+    interval. They were sent as one burst of good reports up to 0.25 s old (INAV reads such
+    a burst 1.6 ms apart as ~13x the motion), behind a heartbeat numbered after them."""
+    peer = PtyPeer(tmp_path / "ttyFC")
+    link = open_link(LinkConfig(port=peer.path, baud=115200, autopilot=autopilot, focal_length_px=400.0))
+    feeder = FrameFeeder(link, fps=FPS)
+    try:
+        feeder.frames(30, flow_x=1.0, peer=peer, sink=bytearray())
+        peer.close()
+        feeder.frames(15, flow_x=1.0)  # reports go on being made (and queued) while it is away
+        assert link.stats["port_open"] is False and link.transport.queued_messages > 0
+        away_until_us = feeder.t_us
+        stale_before = link.stats["stale_messages"]
+        peer.open()
+        now = host_us()
+        for k in range(1, 200):  # simulated back-off time; the queue's age is real time (ms)
+            link.service(now + k * 100_000)
+            if link.stats["port_open"]:
+                break
+        assert link.stats["reopen_count"] == 1
+        assert link.stats["stale_messages"] > stale_before
+        sink = bytearray(peer.read())
+        feeder.frames(30, flow_x=1.0, peer=peer, sink=sink)
+        after = strict_parse(bytes(sink))
+        assert after[0].get_type() == "HEARTBEAT"
+        seqs = [m.get_seq() for m in after]
+        assert all((b - a) % 256 == 1 for a, b in zip(seqs, seqs[1:])), seqs
+        name = "OPTICAL_FLOW" if autopilot == "ardupilot" else "OPTICAL_FLOW_RAD"
+        flow = [m for m in after if m.get_type() == name]
+        assert flow and all(m.time_usec > away_until_us for m in flow)
+        # (a blind keep-alive may go first: the simulated reopen time had no frames)
+        qualities = [m.quality for m in flow]
+        assert 200 in qualities[1:], qualities
+        good = qualities.index(200)
+        assert all(q == 0 for q in qualities[:good]) and all(q == 200 for q in qualities[good:])
+    finally:
+        link.close()
+        peer.close()

@@ -113,7 +113,8 @@ class SerialTransport:
         While a port keeps failing right after each open, one warning summary per this
         many seconds (the single failures are debug lines), s.
     on_open : callable, optional
-        Called after every successful (re)open, e.g. to queue a heartbeat.
+        Called after every successful (re)open, e.g. to queue a heartbeat; the messages
+        queued while there was no port are dropped (counted as stale) before it.
     on_sent : callable, optional
         ``on_sent(message, host_us, latency_us)`` after a message was fully handed to the OS.
     """
@@ -206,6 +207,12 @@ class SerialTransport:
         else:
             log.info("serial port %s open at %d baud", self.port, self.baud)
         self._ever_opened = True
+        # What was queued while the port was away belongs to the connection before: sent now
+        # it would be a burst of old reports, which INAV and ArduPilot's MSP driver divide by
+        # the time since the message before (1.6 ms apart at 115200 baud, not a report
+        # period) and ArduPilot's MAVLink driver fuses as current.
+        while self._queue:
+            self._count_drop(self._queue.popleft(), stale=True)
         if self.on_open is not None:
             self.on_open(now_us)
         return True
