@@ -172,7 +172,14 @@ def run_daemon(config, *, daemon=None) -> int:
         log.info("%s: stopping", signal.Signals(signum).name)
         daemon.stop()
 
+    def _reopen(_signum, _frame):
+        daemon.reopen_logs()
+
     previous = {sig: signal.signal(sig, _stop) for sig in (signal.SIGTERM, signal.SIGINT)}
+    # SIGHUP (a log rotation's signal, or the terminal closing) must not end the flight:
+    # by default it kills the process without a flush, and systemd counts that as a clean
+    # stop, so Restart=on-failure would not bring the flow sensor back.
+    previous[signal.SIGHUP] = signal.signal(signal.SIGHUP, _reopen)
     try:
         return daemon.run()
     except (ConfigError, SourceError) as exc:

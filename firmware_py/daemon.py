@@ -506,6 +506,7 @@ class Daemon:
         self.stop_event = threading.Event()
         self.subset = SteadySubset()
         self.link = None
+        self._reopen_logs = False
         self.estimator = None
         self.width = self.height = 0
         self.fps = 0.0
@@ -629,6 +630,11 @@ class Daemon:
         """Ask the loop to finish (signal handlers call this)."""
         self.stop_event.set()
 
+    def reopen_logs(self) -> None:
+        """Ask the loop to reopen the message log (SIGHUP, after a log rotation): it is done
+        between frames, not inside the signal handler, which may interrupt a row's write."""
+        self._reopen_logs = True
+
     def run(self) -> int:
         """Run until :meth:`stop`, ``config.frames`` processed frames, or a fatal error.
 
@@ -719,6 +725,13 @@ class Daemon:
                 self._blind(now_s)
             self.link.service(host_us())
             self._collect_latencies()
+            if self._reopen_logs:
+                self._reopen_logs = False
+                if self.link.message_log is not None:
+                    self.link.message_log.reopen()
+                    log.info("SIGHUP: message log %s reopened", self.link.message_log.path)
+                else:
+                    log.info("SIGHUP: no message log to reopen; running on")
             if wd_interval is not None and now_s >= next_wd:
                 self.notifier.watchdog()
                 next_wd = now_s + wd_interval

@@ -309,6 +309,46 @@ def test_sigterm_stops_cleanly_with_systemd_notifications(tmp_path):
     assert parse_mavlink(data)
 
 
+def test_sighup_reopens_the_message_log_and_keeps_flying(tmp_path):
+    """logrotate moves the log and sends SIGHUP: the daemon goes on, and its rows go to a new
+    file with its own header. SIGHUP used to kill it without a flush (exit by signal, which
+    systemd's Restart=on-failure does not restart)."""
+    log_path, rotated = tmp_path / "sent.csv", tmp_path / "sent.csv.1"
+    config = _config(tmp_path, f'[source]\nwidth = 96\nheight = 72\n[link]\nmessage_log = "{log_path}"\n')
+    pty = PtyPair()
+    drain = Drain(pty.master)
+    daemon = start_cli(["--config", config, "--source", "synthetic:u=1,v=1", "--realtime", "--serial", pty.path,
+                        "--autopilot", "ardupilot"])
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and daemon.poll() is None and not (
+                log_path.exists() and len(log_path.read_text().splitlines()) > 20):
+            time.sleep(0.1)
+        log_path.rename(rotated)
+        daemon.send_signal(signal.SIGHUP)
+        while time.monotonic() < deadline and daemon.poll() is None and not (
+                log_path.exists() and len(log_path.read_text().splitlines()) > 20):
+            time.sleep(0.1)
+        assert daemon.poll() is None
+        daemon.send_signal(signal.SIGTERM)
+        _, err = daemon.communicate(timeout=30)
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+        data = drain.stop()
+        pty.close()
+    assert daemon.returncode == 0, err[-3000:]
+    assert f"SIGHUP: message log {log_path} reopened" in err and "Traceback" not in err
+    old, new = rotated.read_text().splitlines(), log_path.read_text().splitlines()
+    assert old[0] == new[0] and new[0].startswith("host_us,message,")   # each file its header
+    assert len(old) > 20 and len(new) > 20
+    assert all("OPTICAL_FLOW" in row or "HEARTBEAT" in row for row in old[1:] + new[1:])
+    # every message on the wire is in one log or the other (the rows' seq: no gap at the swap)
+    sent = [m.get_seq() for m in parse_mavlink(data)]
+    logged = [int(row.split(",")[4]) for row in old[1:] + new[1:]]
+    assert logged == sent[:len(logged)] and len(logged) >= len(sent) - 2
+
+
 def test_camera_missing_at_start_keeps_heartbeating_blind(tmp_path):
     config = _config(tmp_path, "[daemon]\nreopen_backoff_s = 0.2\nreopen_backoff_max_s = 0.4\n")
     pty = PtyPair()

@@ -216,6 +216,29 @@ def test_message_log_survives_a_daemon_restart(tmp_path, suffix):
     assert sent.count("HEARTBEAT") >= 2 and sent.count("OPTICAL_FLOW_RAD") >= 2 * 10
 
 
+def test_message_log_reopens_after_a_rotation_and_after_being_disabled(tmp_path):
+    """SIGHUP's reopen(): rows after it go to a new file at the path (with its own header),
+    and a log a write error closed starts again."""
+    from firmware_py.links.message_log import MessageLog
+
+    path = tmp_path / "sent.csv"
+    log = MessageLog(path)
+    row = dict(message="HEARTBEAT", size=21, latency_us=None, fields={"seq": 1})
+    log.write(host_us=1, **row)
+    path.rename(tmp_path / "sent.csv.1")
+    log.reopen()
+    log.write(host_us=2, **row)
+    log.close()                      # what a write error does: the log is disabled ...
+    log.write(host_us=3, **row)
+    log.reopen()                     # ... until the next SIGHUP
+    log.write(host_us=4, **row)
+    log.close()
+    old = list(csv.DictReader(open(tmp_path / "sent.csv.1", newline="")))
+    new = list(csv.DictReader(open(path, newline="")))
+    assert [r["host_us"] for r in old] == ["1"] and [r["host_us"] for r in new] == ["2", "4"]
+    assert log.rows == 3
+
+
 class HangUpAfterOpen:
     """A serial port that opens but fails at once (a dying adapter, a line that hangs up):
     each time the transport opens the pty's slave, the master is closed under it and a new

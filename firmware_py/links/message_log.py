@@ -47,6 +47,10 @@ class MessageLog:
     def __init__(self, path):
         self.path = os.fspath(path)
         self.is_csv = self.path.lower().endswith(".csv")
+        self.rows = 0
+        self._open()
+
+    def _open(self) -> None:
         parent = os.path.dirname(self.path)
         if parent:
             os.makedirs(parent, exist_ok=True)
@@ -59,7 +63,6 @@ class MessageLog:
             if self._file.tell() == 0:
                 self._writer.writeheader()
         self._last_flush_us = None
-        self.rows = 0
 
     def _end_torn_line(self) -> None:
         """Terminate a last row cut off by a power loss, so the next row starts on its own line."""
@@ -89,6 +92,17 @@ class MessageLog:
         except (OSError, ValueError) as exc:
             log.warning("message log %s: %s; logging disabled", self.path, exc)
             self._close_quietly()
+
+    def reopen(self) -> None:
+        """Close the file and open ``path`` afresh (never raises): after a log rotation
+        (``logrotate`` moves the file, then sends SIGHUP) the rows go to a new file with its
+        own CSV header; a log disabled by a write error starts again."""
+        self._close_quietly()
+        try:
+            self._open()
+        except OSError as exc:
+            log.warning("message log %s cannot be reopened: %s; logging disabled", self.path, exc)
+            self._file = None
 
     def close(self) -> None:
         """Flush and close (never raises)."""
