@@ -311,6 +311,16 @@ class SourceKeeper:
     def retry_in_s(self) -> float:
         return max(0.0, self._next_try - self._clock())
 
+    def pacing_wait_s(self) -> float:
+        """The open source's :meth:`~FrameSource.pacing_wait_s` (0 without one)."""
+        source = self.source
+        if source is None:
+            return 0.0
+        try:
+            return float(source.pacing_wait_s())
+        except Exception:  # noqa: BLE001 - read() reports a broken source; never stall on it
+            return 0.0
+
     @property
     def blind(self) -> bool:
         return self.source is None
@@ -704,6 +714,12 @@ class Daemon:
                 # marks the end, so after the end an empty mailbox stays empty)
                 ended = keeper.ended
                 frame = mailbox.get(_POLL_S)
+            elif keeper.pacing_wait_s() > _POLL_S:
+                # A paced recording's next frame is more than a poll away (a slow --realtime
+                # file or flight): wait a slice, then service the link (heartbeats, the blind
+                # keep-alive, the watchdog); read() would sleep the whole frame period.
+                self.stop_event.wait(_POLL_S)
+                frame, ended = None, keeper.ended
             else:
                 frame = keeper.read()
                 ended = keeper.ended

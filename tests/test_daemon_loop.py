@@ -110,6 +110,36 @@ def test_a_paced_source_on_the_numpy_reference_gets_the_capture_thread():
     assert modes == {True: "capture-thread", False: "single"}
 
 
+def test_a_slow_paced_flight_in_one_thread_keeps_the_link_serviced(tmp_path):
+    """A --realtime flight at 1.5 fps read by the single-threaded loop: between frames the
+    loop services the link in short slices, so no flow message is further apart than a
+    report may span (0.45 s) and heartbeats keep their rate. read() used to sleep the whole
+    frame period, and nothing went out for 0.67 s at a time (a 0.08 fps recording held the
+    systemd watchdog off for 12.5 s)."""
+    import csv
+
+    from firmware_py.config import Config
+
+    from daemon_util import engine_backend, run_daemon
+
+    log_path = tmp_path / "sent.csv"
+    config = Config()
+    for section, key, value in (("source", "uri", "synthetic:u=1,v=1"), ("source", "width", 64),
+                                ("source", "height", 48), ("source", "fps", 1.5),
+                                ("engine", "backend", engine_backend()), ("daemon", "threading", "single"),
+                                ("link", "autopilot", "ardupilot"), ("link", "message_log", str(log_path))):
+        config.set(section, key, value)
+    config.source.realtime = True
+    code, daemon, _ = run_daemon(config, frames=4)
+    assert code == 0 and daemon.mode == "single" and daemon.stats.processed == 4
+    rows = list(csv.DictReader(open(log_path, newline="")))
+    flow = [int(r["host_us"]) for r in rows if r["message"] == "OPTICAL_FLOW"]
+    beats = [int(r["host_us"]) for r in rows if r["message"] == "HEARTBEAT"]
+    assert flow[-1] - flow[0] > 1.8e6                       # the run spans the slow frames
+    assert max(b - a for a, b in zip(flow, flow[1:])) < 0.45e6
+    assert len(beats) >= 2 and max(b - a for a, b in zip(beats, beats[1:])) < 1.1e6
+
+
 def _live(source):
     """A file source that stands in for a live stream (a camera's stream that ends is lost)."""
     source.live = True

@@ -124,6 +124,13 @@ class FrameSource:
         """Return the next frame (blocking until it is there), or None at end of stream."""
         raise NotImplementedError
 
+    def pacing_wait_s(self) -> float:
+        """How long :meth:`read` would sleep before its next frame is due (``--realtime``
+        files and synthetic flights), s; 0 for sources that are not paced here. The
+        single-threaded daemon waits for a slow paced frame in short slices, servicing the
+        link in between, instead of sleeping a whole frame period inside :meth:`read`."""
+        return 0.0
+
     def close(self) -> None:
         """Release the device or file; safe to call twice."""
         cap = getattr(self, "_cap", None)  # OpenCV-backed sources keep a VideoCapture here
@@ -219,6 +226,13 @@ class Pacer:
             time.sleep(due - now)
             slept = int((due - now) * 1e6)
         return index, slept, int(due * 1e6)
+
+    def wait_s(self, index: int) -> float:
+        """Time until frame ``index`` is due, s: what :meth:`next` would sleep (0 when the
+        schedule has not started, or the frame is due or late)."""
+        if self._start is None:
+            return 0.0
+        return max(0.0, self._start + index * self.period_s - time.monotonic())
 
     def restart(self) -> None:
         """Forget the schedule (after a rewind)."""

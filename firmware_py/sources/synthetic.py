@@ -192,6 +192,9 @@ class SyntheticSource(FrameSource):
         if self._pacer:
             self._pacer.restart()
 
+    def pacing_wait_s(self) -> float:
+        return self._pacer.wait_s(self._index) if self._pacer else 0.0
+
     def read(self) -> Frame | None:
         due_us = None
         if self._pacer:

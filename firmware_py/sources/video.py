@@ -195,6 +195,9 @@ class VideoFileSource(FrameSource):
         self._decoded = target
         return True
 
+    def pacing_wait_s(self) -> float:
+        return self._pacer.wait_s(self._index) if self._pacer and self._cap is not None else 0.0
+
     def read(self) -> Frame | None:
         if self._cap is None:
             raise SourceError(f"video file {self.path!r}: not open")
