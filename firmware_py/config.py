@@ -308,8 +308,10 @@ def load_config(path: str | Path | None) -> Config:
         return Config()
     path = Path(path)
     try:
-        with path.open("rb") as fh:
-            data = tomllib.load(fh)
+        raw = path.read_bytes()
+        # Windows editors (Notepad) start UTF-8 files with a byte order mark, which tomllib
+        # reports as an invalid statement at line 1: the text after it is what was meant.
+        data = tomllib.loads(raw.removeprefix(b"\xef\xbb\xbf").decode("utf-8"))
     except FileNotFoundError:
         raise ConfigError(f"{path}: configuration file not found") from None
     except PermissionError:

@@ -88,6 +88,14 @@ def test_missing_file_is_named(tmp_path):
         load_config(tmp_path / "nope.toml")
 
 
+def test_a_byte_order_mark_is_not_part_of_the_configuration(tmp_path):
+    """Notepad saves UTF-8 with a byte order mark; tomllib called it an invalid statement at
+    line 1. The file means what follows it."""
+    path = tmp_path / "bom.toml"
+    path.write_bytes(b"\xef\xbb\xbf[link]\nbaud = 57600\n")
+    assert load_config(path).link.baud == 57600
+
+
 def test_unreadable_files_are_config_errors_that_name_the_file(tmp_path):
     latin1 = tmp_path / "latin1.toml"  # a "°" saved by a Latin-1 editor
     latin1.write_bytes(b"# horizontal field of view 71.9\xb0\n[source]\nuri = 'synthetic:'\n")
@@ -198,7 +206,7 @@ def test_cli_help_lists_exactly_the_documented_flags():
     assert result.returncode == 0
     flags = set(re.findall(r"(--[a-z][a-z-]+)", result.stdout))
     assert flags == {"--help", "--config", "--log-level", "--source", "--serial", "--baud", "--autopilot",
-                     "--protocol", "--focal-length-px", "--frames", "--realtime", "--demo"}
+                     "--protocol", "--focal-length-px", "--frames", "--realtime", "--demo", "--version"}
 
 
 def test_engine_model_selects_the_estimator_options(tmp_path):
