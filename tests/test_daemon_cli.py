@@ -7,15 +7,18 @@ from __future__ import annotations
 import math
 import os
 import re
+import signal
 import statistics
 import subprocess
 import sys
+import time
 
 import pytest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # shared helpers
 from daemon_util import (  # noqa: E402
-    Drain, PtyPair, engine_backend, flight_frames, parse_mavlink, parse_msp_v2, run_cli, write_video,
+    Drain, PtyPair, engine_backend, flight_frames, parse_mavlink, parse_msp_v2, run_cli, start_cli,
+    write_video,
 )
 
 FPS = 50.0
@@ -164,6 +167,105 @@ def test_a_port_that_can_never_be_a_serial_port_is_a_configuration_error(tmp_pat
     assert "Traceback" not in result.stderr
 
 
+@pytest.mark.skipif(not os.path.islink("/sys/dev/char/1:3/subsystem"),
+                    reason="no sysfs entry for /dev/null's subsystem (not Linux, or /sys not mounted)")
+@pytest.mark.parametrize("where", ["flag", "file"])
+def test_a_character_device_that_is_no_tty_is_a_configuration_error(tmp_path, where):
+    """/dev/null is a character device, but sysfs files it under 'mem', not 'tty': every
+    termios call on it fails, so the port was accepted, warned about once and retried for
+    ever, the daemon sending nothing (exit 0 at SIGTERM). Now refused at start (exit 2),
+    found without opening the device (an open raises DTR, which resets some boards)."""
+    if where == "flag":
+        args, origin = ["--serial", "/dev/null"], "configuration"
+    else:
+        path = tmp_path / "emdflow.toml"
+        path.write_text("[link]\nport = '/dev/null'\n")
+        args, origin = ["--config", path], str(path)
+    result = run_cli(["--source", "synthetic:", *args, "--frames", 3], timeout=60)
+    assert result.returncode == 2, result.stderr[-2000:]
+    assert (f"{origin}: [link] port (--serial) /dev/null: is a character device of the 'mem' subsystem "
+            "(1:3), not a serial port (tty)") in result.stderr, result.stderr[-2000:]
+    assert "Traceback" not in result.stderr and "Could not configure port" not in result.stderr
+
+
+@pytest.mark.parametrize("port, advice", [
+    ("tty", "did you mean /dev/tty?"),                                   # /dev/tty is always there
+    ("./tty", "did you mean /dev/tty?"),
+    ("dev/tty", "did you mean /dev/tty?"),
+    ("ttyEMDFLOW9", "give the device's absolute path (there is no /dev/ttyEMDFLOW9 now)"),
+    ("null", "give the serial device's absolute path"),                  # /dev/null is no serial port
+])
+def test_a_relative_port_path_is_a_configuration_error(port, advice):
+    """'--serial ttyUSB0' meant /dev/ttyUSB0: resolved against the working directory ('/'
+    under systemd) it never appears, and was retried for ever with one warning. Refused at
+    start (exit 2), with the /dev path when one exists there."""
+    if port in ("null",) and not os.path.islink("/sys/dev/char/1:3/subsystem"):
+        pytest.skip("no sysfs entry for /dev/null's subsystem")
+    result = run_cli(["--source", "synthetic:", "--serial", port, "--frames", 3], timeout=60)
+    assert result.returncode == 2, result.stderr[-2000:]
+    assert f"[link] port (--serial) {port}: is a relative path; {advice}" in result.stderr, result.stderr[-2000:]
+    assert "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize("how", ["device", "symlink"])
+def test_a_pseudo_terminal_port_is_accepted(tmp_path, config_file, how):
+    """A pty slave (/dev/pts/N; sysfs has no entry for it, which must read as "cannot tell",
+    not as "no tty"), by its own path or a symlink to it as socat makes, still carries the link."""
+    pty = PtyPair()
+    drain = Drain(pty.master)
+    port = pty.path
+    if how == "symlink":
+        port = tmp_path / "ttyFC"
+        os.symlink(pty.path, port)
+    try:
+        result = run_cli(["--config", config_file, "--source", "synthetic:u=1,v=1", "--serial", port,
+                          "--baud", "921600", "--frames", 5], timeout=120)
+    finally:
+        data = drain.stop()
+        pty.close()
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "HEARTBEAT" in {m.get_type() for m in parse_mavlink(data)}, result.stderr[-3000:]
+    assert "Traceback" not in result.stderr
+
+
+def test_a_missing_absolute_port_is_retried_until_it_appears(tmp_path, config_file):
+    """A port that does not exist yet (a USB adapter plugged in later, a udev link) is no
+    configuration error: the daemon starts, warns, keeps retrying, and sends once it is there."""
+    port = tmp_path / "ttyFC"
+    log = tmp_path / "stderr.log"
+    with open(log, "w") as stderr:
+        daemon = start_cli(["--config", config_file, "--source", "synthetic:u=1,v=1", "--realtime",
+                            "--serial", port, "--baud", "921600"], stderr=stderr)
+    pty = PtyPair()
+    drain = Drain(pty.master)
+    try:
+        deadline = time.monotonic() + 60                # the engine builds first (kernel cache)
+        while f"cannot open serial port {port}" not in log.read_text() and time.monotonic() < deadline:
+            assert daemon.poll() is None, log.read_text()[-3000:]
+            time.sleep(0.05)
+        assert f"cannot open serial port {port}" in log.read_text()
+        os.symlink(pty.path, port)                      # ... plugged in
+        deadline = time.monotonic() + 30
+        while "HEARTBEAT" not in {m.get_type() for m in parse_mavlink(bytes(drain.data))} \
+                and time.monotonic() < deadline:
+            assert daemon.poll() is None, log.read_text()[-3000:]
+            time.sleep(0.1)
+    finally:
+        if daemon.poll() is None:
+            daemon.send_signal(signal.SIGTERM)
+        try:
+            daemon.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            daemon.kill()
+            daemon.communicate()
+        data = drain.stop()
+        pty.close()
+    err = log.read_text()
+    assert daemon.returncode == 0, err[-3000:]
+    assert "HEARTBEAT" in {m.get_type() for m in parse_mavlink(data)}, err[-3000:]
+    assert f"serial port {port} open at 921600 baud" in err and "Traceback" not in err
+
+
 def test_a_pyserial_url_port_is_a_configuration_error():
     """socket:// and other pyserial URLs open through serial_for_url, which the link does
     not use: refused at start instead of failing to open and being retried for ever."""
@@ -175,12 +277,13 @@ def test_a_pyserial_url_port_is_a_configuration_error():
 
 @pytest.mark.parametrize("autopilot, baud, advice", [("ardupilot", 4800, 9600), ("px4", 4800, 19200),
                                                      ("both", 9600, 38400), ("inav", 1200, 4800)])
-def test_a_baud_rate_too_low_for_the_flow_messages_is_a_configuration_error(autopilot, baud, advice):
+def test_a_baud_rate_too_low_for_the_flow_messages_is_a_configuration_error(tmp_path, autopilot, baud, advice):
     """Not even the up to 11 reports per second the link may send fit (at least 7: ArduPilot's
     EKF3 and INAV stop using flow older than 200 ms; every frame of a camera near 11 fps, to
     keep them <= 180 ms apart): refused at start (exit 2) with the baud rate that would do,
     not run into timeouts. (The 4800 and 9600 baud here carried the 7/s floor alone.)"""
-    result = run_cli(["--source", "synthetic:", "--serial", "/dev/null", "--baud", baud, "--autopilot",
+    port = tmp_path / "ttyFC"  # (not there: no port error; /dev/null is one, no tty)
+    result = run_cli(["--source", "synthetic:", "--serial", port, "--baud", baud, "--autopilot",
                       autopilot, "--frames", 3], timeout=60)
     assert result.returncode == 2, result.stderr[-2000:]
     assert (f"configuration: [link] baud = {baud} (--baud) is too low: up to 11 " in result.stderr

@@ -41,24 +41,54 @@ log = logging.getLogger(__name__)
 def port_problem(port: str) -> str | None:
     """Why ``port`` can never be a serial port, or None. A path that does not exist (yet) is
     no problem: a USB adapter or a udev link appears when plugged in, and the link retries.
-    A path that exists must be a character device (a tty, a pseudo-terminal)."""
+    The path must be absolute (a relative one depends on the working directory, which is
+    ``/`` under systemd). A path that exists must be a character device, and on Linux not
+    one that sysfs files under another subsystem than ``tty`` (``/dev/null`` is ``mem``:
+    it fails every ioctl and would be retried for ever). The port is never opened here:
+    opening a serial port raises DTR, which resets some flight controllers."""
     import stat
 
     if "://" in port:
         # (pyserial's URLs, socket:// or rfc2217://, open through serial_for_url, which this
         # link does not use: such a port failed to open and was retried for ever)
         return "is a URL; the link writes to a serial device path (a tty or pseudo-terminal)"
+    if os.name == "posix" and not os.path.isabs(port):
+        # ('ttyUSB0' for /dev/ttyUSB0 never appeared in the working directory: retried for ever)
+        bare = port[2:] if port.startswith("./") else port
+        guess = "/" + bare if bare.startswith("dev/") else os.path.join("/dev", bare)
+        if not os.path.exists(guess):
+            return f"is a relative path; give the device's absolute path (there is no {guess} now)"
+        if port_problem(guess) is None:
+            return f"is a relative path; did you mean {guess}?"
+        return "is a relative path; give the serial device's absolute path"
     try:
-        mode = os.stat(port).st_mode
+        st = os.stat(port)
     except OSError:
         return None  # missing: retried
+    mode = st.st_mode
     if stat.S_ISCHR(mode):
-        return None
+        subsystem = _char_device_subsystem(st.st_rdev)
+        if subsystem is None or subsystem == "tty":
+            return None  # a tty, or sysfs cannot tell (pseudo-terminals have no entry): tried
+        return (f"is a character device of the '{subsystem}' subsystem "
+                f"({os.major(st.st_rdev)}:{os.minor(st.st_rdev)}), not a serial port (tty)")
     if stat.S_ISDIR(mode):
         return "is a directory, not a serial device"
     if stat.S_ISREG(mode):
         return "is a regular file, not a serial device"
     return "is not a character device (a serial port is one)"
+
+
+def _char_device_subsystem(rdev: int) -> str | None:
+    """The Linux sysfs subsystem of a character device (``tty`` for ttyS, ttyUSB, ttyACM,
+    ttyAMA, /dev/tty, /dev/ptmx; ``mem`` for /dev/null), from the target of
+    ``/sys/dev/char/MAJOR:MINOR/subsystem``; None when it cannot tell (no /sys, not Linux,
+    no entry: the /dev/pts/N pseudo-terminals have none)."""
+    try:
+        target = os.readlink(f"/sys/dev/char/{os.major(rdev)}:{os.minor(rdev)}/subsystem")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return os.path.basename(target.rstrip("/")) or None
 
 
 @dataclass(slots=True)
