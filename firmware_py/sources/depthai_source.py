@@ -13,15 +13,20 @@ processing resolution into a host queue; :meth:`DepthAISource.read` is the same 
   waits for it), so a field of view in the configuration gives the right focal length;
 - replay (no device, ``Pipeline(False)``): ``ReplayVideo`` (GRAY8), then the ``video:``
   source's centre crop to the w:h aspect ratio and area resize to w×h on the host (x and
-  y scaled alike); the timestamp is ``sequence_number / file fps``; no frame for several
-  frame periods (2 s at least; 10 s before the first) is the file's end (a file is not a
-  device that can be lost).
+  y scaled alike); the timestamp is ``sequence_number / file fps``. The frames come through
+  a queue callback into :class:`_ReplayFrames` (ReplayVideo stops the pipeline right after
+  its last frame, which closed the output queue with the file's last frames still in it);
+  the replay stopping is the file's end, and so is no frame for several frame periods
+  (2 s at least; 10 s before the first): a file is not a device that can be lost.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import threading
+import time
+from queue import Empty, Full, Queue
 
 import numpy as np
 
@@ -40,6 +45,8 @@ _UNPACED_FPS = 10_000.0
 _GET_TIMEOUT_S = 2.0
 # a replay: the pipeline starts (and the file opens) before its first frame
 _FIRST_FRAME_TIMEOUT_S = 10.0
+# how often a replay's reader (and its thread, when the reader is behind) looks again
+_POLL_S = 0.01
 
 
 def _import_depthai():
@@ -50,6 +57,52 @@ def _import_depthai():
             f"depthai is not installed ({exc}); install it with: pip install 'emdflow[depthai]'"
         ) from None
     return depthai
+
+
+class _ReplayFrames:
+    """A replay's frames, handed from DepthAI's replay thread to the reader.
+
+    ReplayVideo stops the pipeline as soon as it has sent a file's last frame, and the stop
+    closes the output queue with what is still in it: the last two frames of every file
+    were lost. DepthAI calls a queue's callbacks in the sending thread before it queues the
+    message, so the frames are taken there and kept here, where the stop cannot reach them.
+    """
+
+    def __init__(self, newest_only: bool):
+        # as fast as read: two frames and back-pressure (the replay waits for the reader);
+        # paced (--realtime): only the newest, like a camera
+        self._frames: Queue = Queue(maxsize=1 if newest_only else 2)
+        self._newest_only = newest_only
+        self._stopping = threading.Event()
+
+    def put(self, msg) -> None:
+        """The queue callback (DepthAI's replay thread): never raises, returns once stopped."""
+        while not self._stopping.is_set():
+            try:
+                if self._newest_only:
+                    self._frames.put_nowait(msg)
+                else:
+                    self._frames.put(msg, timeout=_POLL_S)
+                return
+            except Full:
+                if self._newest_only:
+                    try:
+                        self._frames.get_nowait()  # the reader missed it: a camera drops it
+                    except Empty:
+                        pass
+
+    def get(self, timeout: float):
+        """The oldest frame kept, waiting up to ``timeout`` s; None if none came."""
+        try:
+            return self._frames.get(timeout=timeout) if timeout > 0 else self._frames.get_nowait()
+        except Empty:
+            return None
+
+    def stop(self) -> None:
+        """Release a replay thread waiting in :meth:`put` (close must not wait for a reader)."""
+        self._stopping.set()
+        while self.get(0) is not None:
+            pass
 
 
 class DepthAISource(FrameSource):
@@ -141,7 +194,8 @@ class DepthAISource(FrameSource):
         return replay.out
 
     def _start(self, dai):
-        """Build and start the pipeline; returns (pipeline, output queue)."""
+        """Build and start the pipeline; returns (pipeline, output queue): a replay's is
+        a :class:`_ReplayFrames`."""
         if self.live:
             pipeline = dai.Pipeline()  # connects to the first OAK found
             output = self._build_camera(dai, pipeline)
@@ -150,13 +204,12 @@ class DepthAISource(FrameSource):
         else:
             pipeline = dai.Pipeline(False)  # host only, no device
             output = self._build_replay(dai, pipeline)
-            if self.realtime:
-                # Paced file: a camera, which drops the frames a slow reader misses (a
-                # blocking queue slowed the whole replay below real time instead)
-                queue = output.createOutputQueue(maxSize=1, blocking=False)
-            else:
-                # File as fast as it is read: back-pressure instead of dropping.
-                queue = output.createOutputQueue(maxSize=2, blocking=True)
+            # A paced file is a camera, which drops the frames a slow reader misses (a
+            # blocking queue slowed the whole replay below real time instead); a file as
+            # fast as it is read has back-pressure instead of dropping.
+            queue = _ReplayFrames(newest_only=self.realtime)
+            # DepthAI's own queue only carries the callback: never blocking, never read
+            output.createOutputQueue(maxSize=1, blocking=False).addCallback(queue.put)
         pipeline.start()
         return pipeline, queue
 
@@ -220,29 +273,40 @@ class DepthAISource(FrameSource):
 
     def _next(self):
         """The next message from the queue; None at the end of a replay."""
-        timeout = _GET_TIMEOUT_S
         if not self.live:
-            # a file cannot be unplugged: no frame for several of its frame periods (or for
-            # longer before its first, while the pipeline starts) is its end. A lost device
-            # it is not: a file that decodes to nothing was reopened for ever, and a
-            # time-lapse below 0.5 fps never got past its first frame.
-            timeout = max(timeout, 3.0 / self.fps if self.realtime else 0.0,
-                          _FIRST_FRAME_TIMEOUT_S if self._index == 0 else 0.0)
+            return self._next_replayed()
         try:
-            msg = self._queue.get(timeout=_timedelta(timeout))
+            msg = self._queue.get(timeout=_timedelta(_GET_TIMEOUT_S))
         except Exception as exc:
-            # The queue closes when a replay reaches the end of its file (the pipeline may
-            # still report running for a moment), or when the device goes away.
-            if not self.live:
-                log.debug("%s: queue closed (%s): end of stream", self.uri, exc)
-                return None
+            # the queue closes when the device goes away
             raise SourceError(f"{self.uri}: {exc or 'pipeline stopped'}") from None
         if msg is None:
-            if not self.live:
-                log.info("%s: no frame for %.1f s: the end of the file", self.uri, timeout)
-                return None
             raise SourceError(f"{self.uri}: no frame for {_GET_TIMEOUT_S:g} s")
         return msg
+
+    def _next_replayed(self):
+        """The replay's next frame; None at the end of the file."""
+        # a file cannot be unplugged: no frame for several of its frame periods (or for
+        # longer before its first, while the pipeline starts) is its end. A lost device
+        # it is not: a file that decodes to nothing was reopened for ever, and a
+        # time-lapse below 0.5 fps never got past its first frame.
+        timeout = max(_GET_TIMEOUT_S, 3.0 / self.fps if self.realtime else 0.0,
+                      _FIRST_FRAME_TIMEOUT_S if self._index == 0 else 0.0)
+        deadline = time.monotonic() + timeout
+        while True:
+            # ReplayVideo stops the pipeline after handing over the file's last frame (or
+            # when it cannot decode the file): stopped, asked before looking, and nothing
+            # kept is the end, with no frame left behind
+            ended = not self._pipeline.isRunning()
+            msg = self._queue.get(0 if ended else _POLL_S)
+            if msg is not None:
+                return msg
+            if ended:
+                log.debug("%s: the replay stopped: the end of the file", self.uri)
+                return None
+            if time.monotonic() >= deadline:
+                log.info("%s: no frame for %.1f s: the end of the file", self.uri, timeout)
+                return None
 
     def _to_frame(self, msg) -> Frame:
         received = host_us()
@@ -270,7 +334,14 @@ class DepthAISource(FrameSource):
     def close(self) -> None:
         if self._pipeline is not None:
             try:
+                if isinstance(self._queue, _ReplayFrames):
+                    self._queue.stop()
                 self._pipeline.stop()
+                if not self.live:
+                    # the replay thread may be in our callback: let it leave (wait() lets go
+                    # of the GIL) before the pipeline is dropped, whose destructor waits for
+                    # that thread while holding the GIL the callback needs: a hang
+                    self._pipeline.wait()
             except Exception as exc:  # closing must never raise
                 log.debug("%s: pipeline stop: %s", self.uri, exc)
             self._pipeline = None
