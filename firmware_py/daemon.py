@@ -517,6 +517,7 @@ class Daemon:
         self.subset = SteadySubset()
         self.link = None
         self._reopen_logs = False
+        self._geometry_crop = (1.0, 1.0)  # the source's crop_fraction the focal length is for
         self.estimator = None
         self.width = self.height = 0
         self.fps = 0.0
@@ -570,7 +571,7 @@ class Daemon:
         self.live = source.live
         # Before opening: a camera without a focal length is a configuration error.
         self.focal_length_px = self.config.focal_length_px(self.width, source.default_focal_length_px)
-        keeper.on_open = self._source_opened
+        keeper.on_open = self._check_geometry
         try:
             source.open()
             keeper.adopt(source)
@@ -581,6 +582,7 @@ class Daemon:
             keeper.retry_after(d.reopen_backoff_s)
         else:
             self.focal_length_px = self._focal_length_of(source)
+            self._geometry_crop = source.crop_fraction
         return keeper
 
     def _focal_length_of(self, source: FrameSource) -> float:
@@ -606,10 +608,12 @@ class Daemon:
                         "would scale translations down (README, \"Wide lenses and turns\")",
                         self.focal_length_px, self.width, self.height, fov, gx, gy)
 
-    def _source_opened(self, source: FrameSource) -> None:
-        """A source the keeper opened later (absent at start, or reopened): if it delivers
-        another image than the focal length was computed for, the link converts with the
-        new one from its next report."""
+    def _check_geometry(self, source: FrameSource) -> None:
+        """A source the keeper opened later (absent at start, or reopened), or one that
+        learnt what its camera delivers only from a frame (a driver that does not say its
+        size): if it delivers another image than the focal length was computed for, the
+        link converts with the new one from its next report."""
+        self._geometry_crop = source.crop_fraction
         focal = self._focal_length_of(source)
         if not math.isclose(focal, self.focal_length_px, rel_tol=1e-6):
             log.warning("source %s: crop %.3f x %.3f of the delivered image: focal length %.1f px "
@@ -729,6 +733,9 @@ class Daemon:
                     self.stop_event.wait(min(max(keeper.retry_in_s(), 0.001), _POLL_S))
             now_s = time.monotonic()
             if frame is not None:
+                source = keeper.source
+                if source is not None and source.crop_fraction != self._geometry_crop:
+                    self._check_geometry(source)
                 self._process(frame, now_s)
             elif ended:  # a recording's last frame is processed: send what is queued, stop
                 self.link.service(host_us())

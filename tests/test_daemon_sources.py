@@ -960,6 +960,34 @@ def test_camera_absent_at_start_gets_its_focal_length_when_it_opens():
     assert daemon.focal_length_px == pytest.approx(_F_CROP)
 
 
+@pytest.mark.parametrize("threading_mode", ["single", "capture-thread"])
+def test_a_crop_learnt_from_the_first_frame_changes_the_focal_length(threading_mode):
+    """A driver that does not say its size (MJPG, width and height 0): the camera's 640x400
+    shows only in the first decoded frame, and with it the crop. The link converts with
+    the focal length of that crop from then on; it kept the asked size's (20 % off)."""
+    from firmware_py.config import Config
+    from firmware_py.daemon import Daemon
+
+    jpeg = cv2.imencode(".jpg", flight_frames(1, width=640, height=400)[0])[1].reshape(1, -1)
+
+    def factory():
+        return V4L2Source("0", width=320, height=240, pixel_format="MJPG", capture_factory=lambda d, a: _FakeV4L2Capture(
+            d, a, buffers=lambda i: jpeg.copy(), size=(0, 0), fourcc="MJPG", interval_s=0.01))
+
+    config = Config()
+    config.set("source", "uri", "v4l2:0")
+    config.set("optics", "horizontal_fov_deg", 70.0)
+    config.set("engine", "backend", "numpy")
+    config.set("daemon", "threading", threading_mode)
+    config.frames = 3
+    links = []
+    daemon = Daemon(config, source_factory=factory, link_factory=lambda f: links.append(_NullLink(f)) or links[-1])
+    assert daemon.run() == 0
+    f_asked = 320 / 2 / math.tan(math.radians(70.0) / 2)
+    assert links[0].focal_lengths == [pytest.approx(f_asked), pytest.approx(_F_CROP)]
+    assert daemon.focal_length_px == pytest.approx(_F_CROP)
+
+
 class _NullLink:
     """A link that sends nothing and records its focal lengths (what those tests look at)."""
 
