@@ -64,6 +64,8 @@ from pathlib import Path
 import numpy as np
 
 from .field import FlowField
+from .params import _is_whole
+from .reference import POSITION_BINS
 
 __all__ = ["LoomingCues", "looming_cues"]
 
@@ -384,6 +386,20 @@ _MIN_BIN = 5
 _MIN_BINS = 4
 
 
+def _check_call(field, min_detections, caller: str) -> None:
+    """The argument checks :func:`looming_cues` and :func:`slope_expansion_rate` share: a
+    hand-made field's position histogram must have the engine's shape (one of another
+    shape gave a cue from the wrong bins), and ``min_detections`` a whole number ≥ 0."""
+    if not _is_whole(min_detections) or min_detections < 0:
+        raise ValueError(f"{caller}: min_detections={min_detections!r}: expected a whole number >= 0")
+    field.require_evidence(caller)
+    if field.positions is not None:
+        expected = (2, 2 * len(field.params.channels), POSITION_BINS)
+        if np.shape(field.positions) != expected:
+            raise ValueError(f"{caller}: the field's position histogram has shape {np.shape(field.positions)}, "
+                             f"its parameters' channels need {expected} (axis, code, position bin)")
+
+
 def looming_cues(field: FlowField, *, min_detections: int = 50) -> LoomingCues:
     """Expansion rate, time to contact and balance of a :class:`FlowField`.
 
@@ -404,13 +420,15 @@ def looming_cues(field: FlowField, *, min_detections: int = 50) -> LoomingCues:
     Raises
     ------
     ValueError
-        If the field has no summary evidence (``FlowEstimator(..., summary_evidence=False)``).
+        If the field has no summary evidence (``FlowEstimator(..., summary_evidence=False)``),
+        its position histogram is not the engine's shape, or ``min_detections`` is not a
+        whole number ≥ 0.
     TypeError
         If ``field`` is not a :class:`FlowField`.
     """
     if not isinstance(field, FlowField):  # (as summarize(): not an AttributeError from inside)
         raise TypeError(f"looming_cues() takes a FlowField, not {type(field).__name__}")
-    field.require_evidence("looming_cues()")
+    _check_call(field, min_detections, "looming_cues()")
     # (a brightness step in the templates: their detections are not motion, as for summarize())
     if not field.ready or field.exposure_step or field.positions is None:
         return LoomingCues()
@@ -447,7 +465,7 @@ def slope_expansion_rate(field: FlowField, *, min_detections: int = 50) -> float
     table; kept for comparison, e.g. by ``emdflow.tools.zoom_eval``). None when no axis
     has ``min_detections`` detections in at least 3 position bins; ValueError for a field
     without summary evidence."""
-    field.require_evidence("slope_expansion_rate()")
+    _check_call(field, min_detections, "slope_expansion_rate()")
     if not field.ready or field.positions is None:
         return None
     pos = field.positions.astype(np.float64)

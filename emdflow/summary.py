@@ -239,7 +239,7 @@ from pathlib import Path
 import numpy as np
 
 from .field import FlowField
-from .params import GRADIENT_CLASS_STEPS, ORIENTATION_BINS, EngineParams, _is_real, _is_whole
+from .params import GRADIENT_CLASS_STEPS, HISTOGRAM_BINS, ORIENTATION_BINS, EngineParams, _is_real, _is_whole
 from .reference import STAT_CONTRAST
 
 __all__ = ["FlowSummary", "summarize", "SummaryOptions", "calibration_for", "prepare"]
@@ -470,7 +470,10 @@ class SummaryOptions:
             ("static_noise_ratio", 0.0, True, 1.0, True),
             ("huber_fraction", 0.0, False, math.inf, False), ("huber_floor", 0.0, False, math.inf, False),
             ("iterations", 1, True, math.inf, False), ("guess_iterations", 1, True, math.inf, False),
-            ("max_axis_angle", 0.0, False, 90.0, True), ("outlier_probability", 0.0, False, 1.0, False),
+            # (no bin's normal is nearer an axis than half a bin, 90° / ORIENTATION_BINS: a
+            # smaller angle kept no bin, and summarize() failed in a reshape)
+            ("max_axis_angle", 90.0 / ORIENTATION_BINS, False, 90.0, True),
+            ("outlier_probability", 0.0, False, 1.0, False),
             ("overdispersion", 0.0, True, math.inf, False), ("disagreement_weight", 0.0, True, math.inf, False),
             ("quality_error", 0.0, False, math.inf, False),
             ("row_exponent", 0.0, False, 1.0, True), ("misfit_weight", 0.0, True, math.inf, False),
@@ -540,9 +543,11 @@ _CONSTRAINTS: dict = {}
 
 
 def _constraints(params: EngineParams) -> _Constraints:
-    hit = _CONSTRAINTS.get(params)
+    # (by channel set alone: the constraints depend on the channels' speeds, and a key of
+    # the whole parameter set kept one copy per threshold, prefilter, ... ever used)
+    hit = _CONSTRAINTS.get(params.channels)
     if hit is None:
-        hit = _CONSTRAINTS[params] = _Constraints(params)
+        hit = _CONSTRAINTS[params.channels] = _Constraints(params)
     return hit
 
 
@@ -803,7 +808,11 @@ def calibration_for(params: EngineParams, ground: str = "edges"):
 
 def _model_for(params: EngineParams, opts: SummaryOptions, ground: str = "edges"):
     """The likelihood model for these channels and ground, or None when they have no table."""
-    key = (params, opts.max_axis_angle, opts.outlier_probability, ground)
+    # What the model depends on: the table (chosen by channels, diagonal evidence and
+    # threshold mode) and the channels' speeds and axes. The whole parameter set as the key
+    # kept a model (~180 MB for the extended one) per threshold, row step, ... ever used.
+    key = (params.channels, params.diagonal_evidence, params.threshold_mode, opts.max_axis_angle,
+           opts.outlier_probability, ground)
     if key in _MODEL_CACHE:
         return _MODEL_CACHE[key]
     path = calibration_for(params, ground)
@@ -1213,7 +1222,10 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
     Raises
     ------
     ValueError
-        If the field has no summary evidence (``FlowEstimator(..., summary_evidence=False)``).
+        If the field has no summary evidence (``FlowEstimator(..., summary_evidence=False)``),
+        or a hand-made field's histogram is not of the shape its parameters give
+        ``(evidence_axes, 2 · channels, bins)``, bins being 64 orientations or 256 with the
+        gradient-strength classes.
 
     Notes
     -----
@@ -1228,6 +1240,14 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
         raise ValueError(f"summarize(): the field's histogram has {field.histogram.shape[0]} detector axes, "
                          f"its parameters ({'with' if field.params.diagonal_evidence else 'without'} "
                          f"diagonal_evidence) {field.params.evidence_axes}")
+    shape = np.shape(field.histogram)
+    if (len(shape) != 3 or shape[1] != 2 * len(field.params.channels)
+            or shape[2] not in (HISTOGRAM_BINS, ORIENTATION_BINS)):  # (classes or not: see _model_of)
+        # (a hand-made field's histogram of another shape was an IndexError or a reshape
+        # error from inside the fit)
+        raise ValueError(f"summarize(): the field's histogram has shape {np.shape(field.histogram)}, its "
+                         f"parameters need ({field.params.evidence_axes}, {2 * len(field.params.channels)}, "
+                         f"{field.params.histogram_bins}) (axis, code, bin)")
     if not field.ready or field.exposure_step:
         return _BLIND  # no history yet, or a global brightness step is in the templates
     textured = field.textured_fraction
@@ -1296,8 +1316,9 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
     if speed > top_speed:
         expected += 0.5 * (speed / top_speed - 1.0)
     q_accuracy = 0.0
-    if math.isfinite(expected):
-        q_accuracy = 1.0 / (1.0 + (expected / opts.quality_error) ** 2)
+    ratio = expected / opts.quality_error
+    if ratio < 1e150:  # (beyond, the square overflows: q_accuracy is 0 anyway; NaN or inf too)
+        q_accuracy = 1.0 / (1.0 + ratio * ratio)
     quality = 255.0 * q_texture * q_evidence * q_geometry * q_accuracy
     # an estimate was made: quality 0 stays reserved for "no information, flow 0"
     quality = max(1, int(round(quality)))

@@ -206,3 +206,26 @@ def test_zoom_eval_flies_over_any_known_ground(tmp_path):
     assert zoom_eval.texture_source("ihc").endswith("ihc.png")
     with pytest.raises(ValueError, match="no-such-ground"):
         zoom_eval.texture_source("no-such-ground")
+
+
+def test_hand_made_positions_and_min_detections_are_checked():
+    """A position histogram of another shape gave a cue from the wrong bins, and a
+    min_detections of '50' a numpy type error, NaN no cue, -1 was taken: all now say what
+    was expected."""
+    from emdflow.field import FlowField
+    from emdflow.params import EngineParams
+
+    params = EngineParams()
+    codes = np.zeros((48, 64), np.int8)
+    stats = np.zeros(20, np.int64)
+    hist = np.zeros((params.evidence_axes, 14, 64), np.int64)
+    good = np.full((2, 14, 16), 40, np.int64)
+    for call in (looming_cues, slope_expansion_rate):
+        field = FlowField(codes, codes, stats, hist, params, 9, positions=good[:, :, :8])
+        with pytest.raises(ValueError, match=r"position histogram has shape \(2, 14, 8\).*need \(2, 14, 16\)"):
+            call(field)
+        field = FlowField(codes, codes, stats, hist, params, 9, positions=good)
+        for bad in ("50", math.nan, -1, 2.5):
+            with pytest.raises(ValueError, match="min_detections=.*expected a whole number >= 0"):
+                call(field, min_detections=bad)
+        call(field, min_detections=0)

@@ -274,6 +274,12 @@ def test_uncalibrated_channels_fall_back_to_ioc():
     with pytest.raises(ValueError, match="histogram has 2 detector axes, its parameters "
                                          r"\(with diagonal_evidence\) 4"):
         summarize(_field(hist[:2], stats=_stats(params), params=params, frame_index=20))
+    # other code or bin counts, or no bin axis: said too (an IndexError or a reshape error
+    # from inside the fit before)
+    for bad in (hist[:, :10], np.zeros(hist.shape[:2] + (100,), np.int64), hist[:, :, 0]):
+        with pytest.raises(ValueError, match=rf"histogram has shape \({', '.join(map(str, bad.shape))},?\), "
+                                             rf"its parameters need \(4, {hist.shape[1]}, 64\)"):
+            summarize(_field(bad, stats=_stats(params), params=params, frame_index=20))
 
 
 @pytest.mark.parametrize("flow", [(5.0, -0.02), (-5.0, 0.03), (0.02, 4.0), (3.0, -3.02)])
@@ -463,7 +469,7 @@ def test_line_ground_tables_are_their_own():
 
 @pytest.mark.parametrize("option, value", [
     ("full_detections", 0), ("full_textured", 0.0), ("quality_error", 0.0), ("top_speed", 0.0),
-    ("max_axis_angle", -10.0), ("outlier_probability", 0.0), ("outlier_probability", 2.0),
+    ("max_axis_angle", -10.0), ("max_axis_angle", 1.4), ("outlier_probability", 0.0), ("outlier_probability", 2.0),
     ("overdispersion", math.nan), ("row_exponent", 0.0), ("iterations", 0), ("misfit_weight", -0.1),
     ("min_textured", math.inf), ("full_detections", "400"),
     ("search_climbs", -1), ("search_climbs", 9), ("search_climbs", 1.5), ("search_climbs", True),
@@ -476,6 +482,40 @@ def test_summary_options_out_of_range_name_the_option(option, value):
     reshape error, log warnings with a garbage flow, or a NaN expected error."""
     with pytest.raises(ValueError, match=rf"SummaryOptions\({option}="):
         SummaryOptions(**{option: value})
+
+
+def test_the_smallest_axis_angle_and_extreme_quality_options_still_summarize():
+    """A max_axis_angle just above half an orientation bin keeps a bin on each side of an
+    axis (below it none: refused above, it was a reshape error inside summarize()); a tiny
+    quality_error or top_speed gives quality 1, not an OverflowError of the square."""
+    est = emdflow.FlowEstimator(W, H)
+    flight = CameraFlight("gravel", width=W, height=H, flow=(3.0, -1.5), noise_sigma=2.0, seed=2)
+    for t in range(est.params.history_frames + 1):
+        field = est.update(flight.render(t))
+    assert summarize(field, options=SummaryOptions(max_axis_angle=1.41)).quality > 0
+    for option in ({"quality_error": 1e-160}, {"top_speed": 1e-300}, {"misfit_weight": 1e300}):
+        s = summarize(field, options=SummaryOptions(**option))
+        assert s.quality == 1 and math.isfinite(s.flow_x), option
+
+
+def test_one_likelihood_model_serves_every_threshold_and_sampling():
+    """The summary's model depends on the channels, the diagonal evidence and the
+    threshold mode: estimators that differ in threshold, evidence row step or prefilter
+    share it (it was keyed on the whole parameter set: ~180 MB and ~0.9 s more for each
+    threshold of an extended-model sweep, kept for ever)."""
+    import emdflow.summary as summary
+
+    summary._MODEL_CACHE.clear()
+    summary._CONSTRAINTS.clear()
+    flight = CameraFlight("gravel", width=W, height=H, flow=(3.0, -1.5), noise_sigma=2.0, seed=2)
+    sizes = []
+    for options in ({}, {"threshold": 6.5}, {"evidence_row_step": 3, "prefilter_size": 7}):
+        est = emdflow.FlowEstimator(W, H, backend="numpy", **options)
+        for t in range(est.params.history_frames + 1):
+            field = est.update(flight.render(t))
+        assert summarize(field).quality > 0
+        sizes.append((len(summary._MODEL_CACHE), len(summary._CONSTRAINTS)))
+    assert sizes[0] in ((1, 1), (2, 1)) and sizes == sizes[:1] * 3  # (the edge table, maybe "no line table")
 
 
 def test_the_quality_weights_rank_the_error_better_than_the_former_ones():
@@ -742,14 +782,14 @@ def test_fast_flight_off_the_axes_is_not_read_at_the_guess_speed(angle_deg, monk
 
 def test_extended_contracts():
     """Blank → 0, brightness step → 0, static textured → flow 0 with quality."""
-    blank = summarize(_field(np.zeros((2, 18, 64), np.int64), params=EXT_PARAMS, frame_index=20,
+    blank = summarize(_field(np.zeros((2, 2 * len(EXT_PARAMS.channels), 64), np.int64), params=EXT_PARAMS, frame_index=20,
                              stats=_stats(EXT_PARAMS, textured=0.0)))
     assert (blank.flow_x, blank.flow_y, blank.quality) == (0.0, 0.0, 0)
     hist = model_histogram((0.4, 0.1), table=calibration_for(EXT_PARAMS))
     codes = np.zeros((H, W), np.int8)
     step = FlowField(codes, codes, _stats(EXT_PARAMS), hist, EXT_PARAMS, 20, exposure_step=True)
     assert summarize(step).quality == 0
-    static = summarize(_field(np.zeros((2, 18, 64), np.int64), params=EXT_PARAMS, frame_index=20,
+    static = summarize(_field(np.zeros((2, 2 * len(EXT_PARAMS.channels), 64), np.int64), params=EXT_PARAMS, frame_index=20,
                               stats=_stats(EXT_PARAMS, changed=0.0)))
     assert static.static and static.quality > 0 and (static.flow_x, static.flow_y) == (0.0, 0.0)
 
@@ -1129,8 +1169,8 @@ def test_prepare_lays_out_the_tables_before_the_first_frame(monkeypatch):
     params = EngineParams(**EXTENDED)
     summary._MODEL_CACHE.clear()
     summary.prepare(params)
-    edges, lines = (summary._MODEL_CACHE[(params, 60.0, 0.01, g)] for g in ("edges", "lines"))
-    assert edges is not None and lines is not None
+    assert sorted(key[-1] for key in summary._MODEL_CACHE) == ["edges", "lines"]
+    assert all(model is not None for model in summary._MODEL_CACHE.values())
 
     def no_new_model(*args, **kwargs):
         raise AssertionError("summarize() laid out a table after prepare()")
