@@ -2,8 +2,9 @@
 # Install the emdflow daemon as a systemd service on Debian / Raspberry Pi OS / Ubuntu
 # (Raspberry Pi, Jetson, any OAK host).
 #
-#   sudo deploy/install.sh                 # PoCL (CPU OpenCL) from pip, service enabled
-#   sudo deploy/install.sh --opencl apt    # PoCL from Debian (pocl-opencl-icd), e.g. 32-bit Pi OS
+#   sudo deploy/install.sh                 # PoCL (CPU OpenCL): from pip on x86_64, from Debian
+#                                          # (pocl-opencl-icd) on ARM (Pi, Jetson); service enabled
+#   sudo deploy/install.sh --opencl apt    # Debian's PoCL on any processor
 #   sudo deploy/install.sh --opencl vendor # the board's own OpenCL ICD (e.g. Mali; NVIDIA ships
 #                                          # no OpenCL for Jetson: use the default PoCL there)
 #   sudo deploy/install.sh --python python3.11   # Ubuntu 22.04 / Jetson JetPack 6 (python3 is 3.10)
@@ -28,7 +29,7 @@ STATE_DIR=/var/lib/emdflow
 CACHE_DIR=/var/cache/emdflow
 POCL_CACHE_DIR="$CACHE_DIR/pocl"
 PYTHON=python3      # interpreter of the venv: Python >= 3.11 (tomllib)
-OPENCL=pip          # pip | apt | vendor
+OPENCL=             # pip | apt | vendor; default: pip on x86_64, apt elsewhere (below)
 DEPTHAI=0
 START=0
 DRY_RUN=0
@@ -44,8 +45,9 @@ Options:
   --prefix DIR         install the venv into DIR/venv (default $PREFIX)
   --user NAME          service user (default $SERVICE_USER)
   --opencl pip|apt|vendor
-                       pip: pyopencl + PoCL wheels (x86_64, aarch64); apt: Debian's
-                       pocl-opencl-icd; vendor: keep the board's ICD (default $OPENCL)
+                       pip: pyopencl + PyPI's PoCL wheel (x86_64 only); apt: Debian's
+                       pocl-opencl-icd; vendor: keep the board's ICD (default: pip on
+                       x86_64, apt on other processors)
   --depthai            also install depthai (Luxonis OAK cameras)
   --python PY          interpreter for the venv, Python >= 3.11 (default $PYTHON); a name
                        like python3.11 is installed with apt too (with PY-venv)
@@ -100,6 +102,16 @@ case "$SERVICE_USER" in
         echo "install.sh: --user '$SERVICE_USER': expected a user name of letters, digits, _ . -" >&2
         exit 2 ;;
 esac
+# PyPI's PoCL (pocl-binary-distribution) is one x86_64 wheel: on a Pi or a Jetson (aarch64)
+# pip cannot install it, and the install stopped at step 4 with the user already made.
+ARCH="$(uname -m)"
+if [ -z "$OPENCL" ]; then
+    if [ "$ARCH" = x86_64 ]; then OPENCL=pip; else OPENCL=apt; fi
+elif [ "$OPENCL" = pip ] && [ "$ARCH" != x86_64 ]; then
+    echo "install.sh: --opencl pip: PyPI's PoCL wheel is built for x86_64 only, this is $ARCH;" \
+        "use --opencl apt (Debian's pocl-opencl-icd, the default here) or --opencl vendor" >&2
+    exit 2
+fi
 case "$OPENCL" in pip|apt|vendor) ;; *) echo "install.sh: --opencl must be pip, apt or vendor" >&2; exit 2 ;; esac
 [ -f "$SRC/pyproject.toml" ] || { echo "install.sh: $SRC is not an emdflow checkout (no pyproject.toml)" >&2; exit 2; }
 
@@ -159,7 +171,7 @@ else
     echo "   $PYTHON is not installed yet: checked after the system packages"
 fi
 
-echo "== 1/7 system packages"
+echo "== 1/7 system packages (OpenCL: $OPENCL, for $ARCH)"
 run apt-get update
 run apt-get install -y --no-install-recommends "${APT_PKGS[@]}"
 if [ "$PYTHON_CHECKED" = 0 ] && [ "$DRY_RUN" = 0 ]; then

@@ -36,7 +36,8 @@ log = logging.getLogger(__name__)
 
 _INSTALL_HINT = (
     "install an OpenCL runtime: `pip install \"emdflow[pocl]\"` (pyopencl with the PoCL CPU "
-    "runtime; needs binutils' `ld`, e.g. `apt-get install binutils`), or your board vendor's "
+    "runtime on x86_64; needs binutils' `ld`, e.g. `apt-get install binutils`; on ARM PyPI has "
+    "no PoCL: `apt-get install pocl-opencl-icd`), or your board vendor's "
     "OpenCL ICD (e.g. `apt-get install pocl-opencl-icd`, Mali/Jetson drivers) plus "
     "`pip install \"emdflow[opencl]\"`; or use backend=\"numpy\" (slow)"
 )

@@ -242,6 +242,33 @@ def test_install_updates_an_unedited_udev_rule_and_keeps_an_edited_one(tmp_path)
     assert "keeping" not in install()                                                # already current
 
 
+@pytest.mark.parametrize("arch", ["aarch64", "x86_64"])
+def test_install_takes_debians_pocl_where_pip_has_none(tmp_path, arch):
+    """PyPI's PoCL wheel is x86_64 only: on a Pi or a Jetson the default install stopped at
+    pip, after the user and its folders were made. The default is now Debian's PoCL there,
+    and an explicit --opencl pip is refused before any step. (`uname -m` answers from a
+    stand-in on PATH: this machine is x86_64.)"""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "uname").write_text(f"#!/bin/sh\necho {arch}\n")
+    (bin_dir / "uname").chmod(0o755)
+    env = dict(os.environ, PATH=f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
+    default = _dry_run("--prefix", tmp_path / "opt", env=env)
+    assert default.returncode == 0, default.stderr
+    packages = next(line for line in default.stdout.splitlines() if "apt-get install" in line)
+    pip = next(line for line in default.stdout.splitlines() if "pip install" in line and "[" in line)
+    if arch == "aarch64":
+        assert "pocl-opencl-icd" in packages and pip.endswith("[opencl]"), (packages, pip)
+    else:
+        assert "pocl-opencl-icd" not in packages and pip.endswith("[pocl]"), (packages, pip)
+    explicit = _dry_run("--prefix", tmp_path / "opt", "--opencl", "pip", env=env)
+    if arch == "aarch64":
+        assert explicit.returncode == 2 and "+ " not in explicit.stdout
+        assert "--opencl pip: PyPI's PoCL wheel is built for x86_64 only, this is aarch64" in explicit.stderr
+    else:
+        assert explicit.returncode == 0 and "[pocl]" in explicit.stdout
+
+
 def test_install_refuses_an_option_without_its_value_and_relative_folders(tmp_path):
     """`--prefix --dry-run` took "--dry-run" as the prefix and ran a real install; a
     missing last value was bash's "unbound variable"; a relative prefix planned a unit
