@@ -893,7 +893,7 @@ class Daemon:
             t = self.stats.totals()
             return (f"total: in {t['frames_in']} processed {t['processed']} skipped {t['skipped']} "
                     f"dropped {t['dropped']} bad {t['bad_frames']} resets {t['resets']} "
-                    f"reopens {t['reopens']} blind {t['blind_periods']} | link {_link_stats(st)} | "
+                    f"reopens {t['reopens']} blind {t['blind_periods']} | link {_link_stats(st, final=True)} | "
                     f"latency capture->serial p50 {lat50 / 1000:.2f} ms p99 {lat99 / 1000:.2f} ms "
                     f"(n={len(self.latencies_us)})")
         rate = iv["processed"] / period_s if period_s else 0.0
@@ -916,14 +916,33 @@ class Daemon:
         self.notifier.status(text[:200])
 
 
-def _link_stats(st) -> str:
-    """Messages written (by type), drops and port state from the link's stats mapping."""
+#: The link's other counters, (stats key, label): in the final line always, in the status
+#: line when not 0 (each says something went wrong on the wire, or what the autopilot sent).
+_LINK_COUNTERS = (("stale_messages", "stale"), ("open_failures", "open failures"),
+                  ("write_errors", "write errors"), ("read_errors", "read errors"),
+                  ("integration_restarts", "restarts"), ("bytes_written", "bytes out"),
+                  ("rx_bytes", "bytes in"), ("rx_garbage_bytes", "garbage in"))
+
+
+def _link_stats(st, *, final: bool = False) -> str:
+    """Messages written (by type), drops and port state from the link's stats mapping, then
+    the other counters (all of them in the ``final`` line, else those not 0) and the
+    autopilot's heartbeat once one was seen."""
     if not isinstance(st, dict):
         return "-" if st is None else str(st)
     sent = st.get("messages_sent") or {}
     by_type = ",".join(f"{name} {count}" for name, count in sorted(sent.items())) or "none"
-    return (f"sent {by_type}; dropped {st.get('dropped_messages', 0)} blind {st.get('blind_reports', 0)} "
+    text = (f"sent {by_type}; dropped {st.get('dropped_messages', 0)} blind {st.get('blind_reports', 0)} "
             f"port {'open' if st.get('port_open') else 'CLOSED'} reopens {st.get('reopen_count', 0)}")
+    for key, label in _LINK_COUNTERS:
+        value = st.get(key)
+        # (bytes out and in grow with every frame: only the final line carries them)
+        if isinstance(value, int) and (final or (value and key not in ("bytes_written", "rx_bytes"))):
+            text += f" {label} {value}"
+    heartbeat = st.get("rx_heartbeat")
+    if final and isinstance(heartbeat, dict):
+        text += f" autopilot sysid {heartbeat.get('sysid')} type {heartbeat.get('type')}"
+    return text
 
 
 def _on_device(estimator) -> str:

@@ -281,3 +281,22 @@ def test_the_status_line_says_when_the_ground_reads_as_thin_lines():
         assert code == 0 and daemon.stats.last_summary.quality > 0
         said[texture] = "(line ground)" in daemon.status_text(daemon.stats.interval(), 1.0)
     assert said == {"lines-5-30": True, "gravel": False}
+
+
+def test_status_lines_carry_the_link_counters_the_readme_lists():
+    """The status line adds each of the link's trouble counters once it is not 0, and the
+    final line all of them with the bytes and the autopilot's heartbeat (they were kept in
+    link.stats only, though the README listed them as logged)."""
+    from firmware_py.daemon import _link_stats
+
+    stats = {"messages_sent": {"OPTICAL_FLOW": 5, "HEARTBEAT": 1}, "dropped_messages": 1, "blind_reports": 0,
+             "port_open": True, "reopen_count": 2, "stale_messages": 3, "open_failures": 0, "write_errors": 0,
+             "read_errors": 4, "integration_restarts": 0, "bytes_written": 999, "rx_bytes": 120,
+             "rx_garbage_bytes": 7, "rx_heartbeat": {"sysid": 1, "compid": 1, "type": 2, "autopilot": 3}}
+    status, final = _link_stats(stats), _link_stats(stats, final=True)
+    assert status.startswith("sent HEARTBEAT 1,OPTICAL_FLOW 5; dropped 1 blind 0 port open reopens 2")
+    assert "stale 3" in status and "read errors 4" in status and "garbage in 7" in status
+    assert "write errors" not in status and "bytes out" not in status and "autopilot" not in status
+    for part in ("stale 3", "open failures 0", "write errors 0", "read errors 4", "restarts 0", "bytes out 999",
+                 "bytes in 120", "garbage in 7", "autopilot sysid 1 type 2"):
+        assert part in final, (part, final)
