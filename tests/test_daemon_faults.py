@@ -309,6 +309,22 @@ def test_sigterm_stops_cleanly_with_systemd_notifications(tmp_path):
     assert parse_mavlink(data)
 
 
+def _stop(daemon, drain, pty) -> tuple[str, bytes]:
+    """SIGTERM a daemon started with start_cli (killed if it does not stop), then its stderr
+    and every byte it wrote to the pseudo-terminal."""
+    err = ""
+    try:
+        if daemon.poll() is None:
+            daemon.send_signal(signal.SIGTERM)
+        _, err = daemon.communicate(timeout=30)
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+        data = drain.stop()
+        pty.close()
+    return err, data
+
+
 def test_sighup_reopens_the_message_log_and_keeps_flying(tmp_path):
     """logrotate moves the log and sends SIGHUP: the daemon goes on, and its rows go to a new
     file with its own header. SIGHUP used to kill it without a flush (exit by signal, which
@@ -330,13 +346,8 @@ def test_sighup_reopens_the_message_log_and_keeps_flying(tmp_path):
                 log_path.exists() and len(log_path.read_text().splitlines()) > 20):
             time.sleep(0.1)
         assert daemon.poll() is None
-        daemon.send_signal(signal.SIGTERM)
-        _, err = daemon.communicate(timeout=30)
     finally:
-        if daemon.poll() is None:
-            daemon.kill()
-        data = drain.stop()
-        pty.close()
+        err, data = _stop(daemon, drain, pty)
     assert daemon.returncode == 0, err[-3000:]
     assert f"SIGHUP: message log {log_path} reopened" in err and "Traceback" not in err
     old, new = rotated.read_text().splitlines(), log_path.read_text().splitlines()
@@ -360,13 +371,8 @@ def test_camera_missing_at_start_keeps_heartbeating_blind(tmp_path):
         while (time.monotonic() < deadline and daemon.poll() is None
                and sum(m.get_type() == "OPTICAL_FLOW" for m in parse_mavlink(bytes(drain.data))) < 5):
             time.sleep(0.1)
-        daemon.send_signal(signal.SIGTERM)
-        _, err = daemon.communicate(timeout=30)
     finally:
-        if daemon.poll() is None:
-            daemon.kill()
-        data = drain.stop()
-        pty.close()
+        err, data = _stop(daemon, drain, pty)
     assert daemon.returncode == 0, err[-3000:]
     assert "v4l2:/dev/video7: /dev/video7 does not exist (camera unplugged?)" in err
     assert err.count("does not exist") >= 2                                # retried
