@@ -517,6 +517,7 @@ class Daemon:
         self.subset = SteadySubset()
         self.link = None
         self._reopen_logs = False
+        self._waits_in_read = False
         self._geometry_crop = (1.0, 1.0)  # the source's crop_fraction the focal length is for
         self.estimator = None
         self.width = self.height = 0
@@ -569,6 +570,7 @@ class Daemon:
         source = self._source_factory()  # raises SourceError for a bad URI or missing file
         self.width, self.height, self.fps = source.width, source.height, source.fps
         self.live = source.live
+        self._waits_in_read = bool(getattr(source, "waits_in_read", False))
         # Before opening: a camera without a focal length is a configuration error.
         self.focal_length_px = self.config.focal_length_px(self.width, source.default_focal_length_px)
         keeper.on_open = self._check_geometry
@@ -671,7 +673,9 @@ class Daemon:
             # a paced recording or flight fed to the numpy reference is a camera the engine
             # cannot keep up with: it needs the capture side's evenly spaced subset too
             paced_slow = self.config.source.realtime and self.config.engine.backend == "numpy"
-            self.mode = choose_threading(self.config.daemon.threading, live=self.live or paced_slow)
+            # (and a source that waits for its frames where the loop cannot see how long)
+            self.mode = choose_threading(self.config.daemon.threading,
+                                         live=self.live or paced_slow or self._waits_in_read)
             log.info("source %s: %dx%d @ %g fps, focal length %.1f px; engine %s; link %s %s @ %d baud; %s",
                      self.config.source.uri, self.width, self.height, self.fps, self.focal_length_px,
                      self.config.engine.backend, self.config.link_autopilot(), self.config.link.port,
@@ -750,9 +754,10 @@ class Daemon:
             self._collect_latencies()
             if self._reopen_logs:
                 self._reopen_logs = False
-                if self.link.message_log is not None:
-                    self.link.message_log.reopen()
-                    log.info("SIGHUP: message log %s reopened", self.link.message_log.path)
+                reopen = getattr(self.link, "reopen_message_log", None)
+                path = reopen() if reopen is not None else None
+                if path is not None:
+                    log.info("SIGHUP: message log %s reopened", path)
                 else:
                     log.info("SIGHUP: no message log to reopen; running on")
             if wd_interval is not None and now_s >= next_wd:
@@ -841,7 +846,11 @@ class Daemon:
         """``configured_s``, or :data:`_GAP_INTERVALS` typical processed intervals when the
         frames are that far apart anyway (slow camera, large frame subset), s."""
         typical_us = self._processed_intervals.typical
-        return configured_s if typical_us is None else max(configured_s, _GAP_INTERVALS * typical_us / 1e6)
+        if typical_us is None:
+            # (before two frames: the nominal period, so that the first wait of a slow
+            # recording or flight is no blind camera)
+            return max(configured_s, _GAP_INTERVALS / self.fps) if self.fps > 0 else configured_s
+        return max(configured_s, _GAP_INTERVALS * typical_us / 1e6)
 
     def _frame_interval_s(self) -> float:
         """Typical interval between processed frames from their capture timestamps, s (the

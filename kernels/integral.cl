@@ -6,7 +6,8 @@
  * With DSAT, each finished row is also subtracted from the same row of the previous
  * frame's table (slot - 1, finished a frame ago): dsat = S_t - S_(t-1), the summed-area
  * table of P_t - P_(t-1) (uint16, wrapping), from which ternary_states takes the delay-1
- * differences of the small scales in 4 loads instead of 8. At t = 0 (and after reset())
+ * differences of the scales k > 1 in 4 loads instead of 8 (at k = 13, 15 where the wrapped
+ * value is exact, see wrapped_difference32). At t = 0 (and after reset())
  * the previous slot is stale or zero: nothing reads dsat before t = 1.
  * With COMPENSATE, work item 0 adds up the prefilter's strip sums into the frame's pixel
  * sum of P, kept per slot of P (bright[0 .. P_SLOTS - 1]), and from those the exposure

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import select
+import signal
 import subprocess
 import sys
 import tempfile
@@ -179,6 +180,25 @@ def start_cli(args, *, env=None, stderr=subprocess.PIPE) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "firmware_py.cli", *map(str, args)],
                             stdout=subprocess.PIPE, stderr=stderr, text=True, env=_env(env),
                             cwd=tempfile.gettempdir())
+
+
+def stop_cli(daemon, drain, pty) -> tuple[str, bytes]:
+    """SIGTERM a daemon started with :func:`start_cli` (killed and reaped if it does not
+    stop in 30 s), then its stderr (empty when it went to a file) and every byte it wrote
+    to the pseudo-terminal ``pty`` that ``drain`` reads."""
+    err = ""
+    try:
+        if daemon.poll() is None:
+            daemon.send_signal(signal.SIGTERM)
+        try:
+            _, err = daemon.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            daemon.kill()
+            _, err = daemon.communicate()
+    finally:
+        data = drain.stop()
+        pty.close()
+    return err or "", data
 
 
 def opencl_available() -> bool:

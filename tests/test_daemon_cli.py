@@ -7,7 +7,6 @@ from __future__ import annotations
 import math
 import os
 import re
-import signal
 import statistics
 import subprocess
 import sys
@@ -17,7 +16,7 @@ import pytest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # shared helpers
 from daemon_util import (  # noqa: E402
-    Drain, PtyPair, engine_backend, flight_frames, parse_mavlink, parse_msp_v2, run_cli, start_cli,
+    Drain, PtyPair, engine_backend, flight_frames, parse_mavlink, parse_msp_v2, run_cli, start_cli, stop_cli,
     write_video,
 )
 
@@ -207,6 +206,22 @@ def test_a_relative_port_path_is_a_configuration_error(port, advice):
     assert "Traceback" not in result.stderr
 
 
+def test_a_relative_port_that_exists_here_is_named_absolutely(tmp_path, monkeypatch):
+    """A socat link made in the current folder: the advice is its absolute path (the
+    working directory is / under systemd), not a /dev path that does not exist."""
+    from firmware_py.links.serial_port import port_problem
+
+    pty = PtyPair()
+    try:
+        monkeypatch.chdir(tmp_path)
+        os.symlink(pty.path, "ttyV0")
+        assert port_problem("ttyV0") == ("is a relative path (to the working directory, / under systemd); "
+                                         f"give it as {tmp_path / 'ttyV0'}")
+        assert port_problem(str(tmp_path / "ttyV0")) is None
+    finally:
+        pty.close()
+
+
 @pytest.mark.parametrize("how", ["device", "symlink"])
 def test_a_pseudo_terminal_port_is_accepted(tmp_path, config_file, how):
     """A pty slave (/dev/pts/N; sysfs has no entry for it, which must read as "cannot tell",
@@ -251,15 +266,7 @@ def test_a_missing_absolute_port_is_retried_until_it_appears(tmp_path, config_fi
             assert daemon.poll() is None, log.read_text()[-3000:]
             time.sleep(0.1)
     finally:
-        if daemon.poll() is None:
-            daemon.send_signal(signal.SIGTERM)
-        try:
-            daemon.communicate(timeout=30)
-        except subprocess.TimeoutExpired:
-            daemon.kill()
-            daemon.communicate()
-        data = drain.stop()
-        pty.close()
+        _, data = stop_cli(daemon, drain, pty)
     err = log.read_text()
     assert daemon.returncode == 0, err[-3000:]
     assert "HEARTBEAT" in {m.get_type() for m in parse_mavlink(data)}, err[-3000:]

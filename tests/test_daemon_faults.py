@@ -19,7 +19,7 @@ from firmware_py.sources import make_source
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # shared helpers
 from daemon_util import (  # noqa: E402
     Drain, FaultySource, PtyPair, engine_backend, flight_frames, parse_mavlink, run_cli, run_daemon, start_cli,
-    write_video,
+    stop_cli, write_video,
 )
 
 
@@ -309,22 +309,6 @@ def test_sigterm_stops_cleanly_with_systemd_notifications(tmp_path):
     assert parse_mavlink(data)
 
 
-def _stop(daemon, drain, pty) -> tuple[str, bytes]:
-    """SIGTERM a daemon started with start_cli (killed if it does not stop), then its stderr
-    and every byte it wrote to the pseudo-terminal."""
-    err = ""
-    try:
-        if daemon.poll() is None:
-            daemon.send_signal(signal.SIGTERM)
-        _, err = daemon.communicate(timeout=30)
-    finally:
-        if daemon.poll() is None:
-            daemon.kill()
-        data = drain.stop()
-        pty.close()
-    return err, data
-
-
 def test_sighup_reopens_the_message_log_and_keeps_flying(tmp_path):
     """logrotate moves the log and sends SIGHUP: the daemon goes on, and its rows go to a new
     file with its own header. SIGHUP used to kill it without a flush (exit by signal, which
@@ -347,7 +331,7 @@ def test_sighup_reopens_the_message_log_and_keeps_flying(tmp_path):
             time.sleep(0.1)
         assert daemon.poll() is None
     finally:
-        err, data = _stop(daemon, drain, pty)
+        err, data = stop_cli(daemon, drain, pty)
     assert daemon.returncode == 0, err[-3000:]
     assert f"SIGHUP: message log {log_path} reopened" in err and "Traceback" not in err
     old, new = rotated.read_text().splitlines(), log_path.read_text().splitlines()
@@ -372,7 +356,7 @@ def test_camera_missing_at_start_keeps_heartbeating_blind(tmp_path):
                and sum(m.get_type() == "OPTICAL_FLOW" for m in parse_mavlink(bytes(drain.data))) < 5):
             time.sleep(0.1)
     finally:
-        err, data = _stop(daemon, drain, pty)
+        err, data = stop_cli(daemon, drain, pty)
     assert daemon.returncode == 0, err[-3000:]
     assert "v4l2:/dev/video7: /dev/video7 does not exist (camera unplugged?)" in err
     assert err.count("does not exist") >= 2                                # retried

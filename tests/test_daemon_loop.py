@@ -87,22 +87,29 @@ def test_threading_choice():
     assert choose_threading("capture-thread", live=False) == "capture-thread"
 
 
+def _small_flight_config(uri: str):
+    """A daemon configuration for a 64x48 synthetic flight on the numpy reference."""
+    from firmware_py.config import Config
+
+    config = Config()
+    config.set("source", "uri", uri)
+    config.set("source", "width", 64)
+    config.set("source", "height", 48)
+    config.set("engine", "backend", "numpy")
+    return config
+
+
 def test_a_paced_source_on_the_numpy_reference_gets_the_capture_thread():
     """``auto`` threading: a paced (``realtime``) flight on the numpy reference is read by a
     capture thread that passes an evenly spaced subset, as for a camera — one thread would
     skip whichever frames came due while the slow engine worked (gaps of 1–3 frames at
     random, which the velocity templates cannot follow); unpaced it stays one thread."""
-    from firmware_py.config import Config
 
     from daemon_util import run_daemon
 
     modes = {}
     for realtime in (True, False):
-        config = Config()
-        config.set("source", "uri", "synthetic:u=2,v=1")
-        config.set("source", "width", 64)
-        config.set("source", "height", 48)
-        config.set("engine", "backend", "numpy")
+        config = _small_flight_config("synthetic:u=2,v=1")
         config.source.realtime = realtime
         code, daemon, _ = run_daemon(config, frames=6)
         assert code == 0
@@ -138,6 +145,9 @@ def test_a_slow_paced_flight_in_one_thread_keeps_the_link_serviced(tmp_path):
     assert flow[-1] - flow[0] > 1.8e6                       # the run spans the slow frames
     assert max(b - a for a, b in zip(flow, flow[1:])) < 0.45e6
     assert len(beats) >= 2 and max(b - a for a, b in zip(beats, beats[1:])) < 1.1e6
+    # the first waits of a slow flight are its frame period, not a blind camera (the gap
+    # limit is the nominal period until two frames gave the typical one)
+    assert daemon.stats.blind_periods == 0
 
 
 def _live(source):
@@ -300,3 +310,30 @@ def test_status_lines_carry_the_link_counters_the_readme_lists():
     for part in ("stale 3", "open failures 0", "write errors 0", "read errors 4", "restarts 0", "bytes out 999",
                  "bytes in 120", "garbage in 7", "autopilot sysid 1 type 2"):
         assert part in final, (part, final)
+
+
+def test_a_source_that_waits_inside_read_gets_the_capture_thread(tmp_path):
+    """A paced DepthAI replay waits for its frames inside the pipeline, where the loop cannot
+    see for how long: ``auto`` threading reads it in a capture thread, so the link is served
+    meanwhile (one thread would block up to a frame period, 2 s and more, in read())."""
+    from firmware_py.sources.synthetic import SyntheticSource
+
+    from daemon_util import run_daemon
+
+    class WaitsInRead(SyntheticSource):
+        waits_in_read = True
+
+    modes = {}
+    for waits in (True, False):
+        config = _small_flight_config("synthetic:u=1,v=1")
+        cls = WaitsInRead if waits else SyntheticSource
+        code, daemon, _ = run_daemon(config, frames=4, source_factory=lambda: cls("u=1,v=1", width=64, height=48))
+        assert code == 0
+        modes[waits] = daemon.mode
+    assert modes == {True: "capture-thread", False: "single"}
+    pytest.importorskip("depthai")
+    from firmware_py.sources.depthai_source import DepthAISource
+
+    path = write_video(tmp_path / "clip.mkv", flight_frames(4, width=64, height=48), fps=25)
+    assert DepthAISource(replay_path=str(path), realtime=True).waits_in_read
+    assert not DepthAISource(replay_path=str(path)).waits_in_read

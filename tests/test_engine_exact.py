@@ -163,6 +163,10 @@ def test_large_changes_at_the_widest_scales(scales):
         frame[:, 70:] = 255 * ((t // 2) % 2)  # a whole strip steps as well
         frames.append(np.clip(frame, 0, 255).astype(np.uint8))
     _compare(width, height, frames, EngineParams(scales=scales, threshold=2.0))
+    # the whole frame switching between black and white: every box changes by exactly
+    # 255 k^2, the largest change, in every lane of every word (a limit one too loose fails)
+    flat = [np.full((41, 160), 255 * (t % 2), np.uint8) for t in range(6)]
+    _compare(160, 41, flat, EngineParams(scales=scales, threshold=2.0))
 
 
 @pytest.mark.parametrize(

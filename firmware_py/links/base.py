@@ -463,6 +463,22 @@ class FlowLink:
         if self.message_log is not None:
             self.message_log.close()
 
+    def reopen_message_log(self) -> str | None:
+        """Reopen the message log (SIGHUP after a log rotation), or create it if it could
+        not be at start-up (a folder made since); returns its path, None without one
+        configured. Never raises: a log that still cannot be written logs a warning."""
+        if self.message_log is not None:
+            self.message_log.reopen()
+        elif self.config.message_log:
+            try:
+                self.message_log = MessageLog(self.config.message_log)
+            except OSError as exc:
+                log.warning("message log %s cannot be created: %s; not logging", self.config.message_log, exc)
+                return None
+        else:
+            return None
+        return self.message_log.path
+
     def __enter__(self):
         return self
 

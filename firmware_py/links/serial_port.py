@@ -54,6 +54,9 @@ def port_problem(port: str) -> str | None:
         return "is a URL; the link writes to a serial device path (a tty or pseudo-terminal)"
     if os.name == "posix" and not os.path.isabs(port):
         # ('ttyUSB0' for /dev/ttyUSB0 never appeared in the working directory: retried for ever)
+        if os.path.exists(port):  # (e.g. a socat link made in the current folder)
+            return (f"is a relative path (to the working directory, / under systemd); give it as "
+                    f"{os.path.abspath(port)}")
         bare = port[2:] if port.startswith("./") else port
         guess = "/" + bare if bare.startswith("dev/") else os.path.join("/dev", bare)
         if not os.path.exists(guess):

@@ -124,6 +124,11 @@ class FrameSource:
         """Return the next frame (blocking until it is there), or None at end of stream."""
         raise NotImplementedError
 
+    #: read() waits on a clock it cannot report through :meth:`pacing_wait_s` (a paced
+    #: DepthAI replay, which ReplayVideo paces inside the pipeline): the daemon reads such a
+    #: source in a capture thread, as a camera, so the link is serviced while it waits.
+    waits_in_read: bool = False
+
     def pacing_wait_s(self) -> float:
         """How long :meth:`read` would sleep before its next frame is due (``--realtime``
         files and synthetic flights), s; 0 for sources that are not paced here. The

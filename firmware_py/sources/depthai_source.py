@@ -135,6 +135,7 @@ class DepthAISource(FrameSource):
         self.replay_path = replay_path
         self.live = replay_path is None
         self.loop, self.realtime = bool(loop), bool(realtime)
+        self.waits_in_read = self.realtime and not self.live  # (ReplayVideo's own pacing)
         self.exposure_us, self.gain = exposure_us, gain
         if self.live:
             socket = socket.upper()
