@@ -117,6 +117,47 @@ def test_reader_that_stops_reading_drops_oldest_and_never_blocks(tmp_path):
         peer.close()
 
 
+@pytest.mark.parametrize("autopilot", ["px4", "inav"])
+def test_a_stalled_line_restarts_the_autopilots_interval_with_quality_0(tmp_path, autopilot):
+    """A reader that stops (a stalled line): reports are dropped. The autopilot times each
+    report's counts from the report before it (INAV divides them by that time, PX4
+    integrates its gyro over it), so the first report it gets after a gap must have quality
+    0, and the good ones follow one report period apart. The good reports behind a dropped
+    one went out as they were."""
+    peer = PtyPeer(tmp_path / "ttyFC")
+    link = open_link(LinkConfig(port=peer.path, baud=115200, autopilot=autopilot, focal_length_px=400.0))
+    feeder = FrameFeeder(link, fps=FPS)
+    try:
+        sink = bytearray()
+        feeder.frames(20, flow_y=1.0, peer=peer, sink=sink)
+        feeder.frames(3000, flow_y=1.0)         # nobody reads: the pty buffer fills, reports drop
+        assert link.stats["dropped_messages"] > 0
+        sink += peer.read()
+        feeder.frames(60, flow_y=1.0, peer=peer, sink=sink)
+    finally:
+        link.close()
+        peer.close()
+    if autopilot == "px4":
+        reports = [(m.time_usec, m.quality) for m in strict_parse(bytes(sink)) if m.get_type() == "OPTICAL_FLOW_RAD"]
+    else:
+        from daemon_util import parse_msp_v2
+
+        # MSP2_SENSOR_OPTIC_FLOW (0x1F02) carries no time: the wire order and quality tell
+        reports = [(None, payload[0]) for function, payload in parse_msp_v2(bytes(sink)) if function == 0x1F02]
+    qualities = [q for _, q in reports]
+    assert len(qualities) > 20
+    # in wire order: a run of good reports, then (after the gap) a quality-0 one, then good again
+    first_zero = qualities.index(0, 1)
+    assert all(q > 0 for q in qualities[1:first_zero]) and all(q > 0 for q in qualities[first_zero + 1:]), qualities
+    if autopilot == "px4":
+        times = [t for t, _ in reports]
+        steps = [b - a for a, b in zip(times, times[1:])]
+        typical = sorted(steps)[len(steps) // 2]
+        for (t0, _), (t1, q1) in zip(reports, reports[1:]):
+            if t1 - t0 > 1.5 * typical:
+                assert q1 == 0, (t0, t1, q1)    # the report after a gap restarts the interval
+
+
 def _service_until_open(link):
     """Run the link's service (its reopen back-off) over ten simulated seconds, until its
     port is open."""

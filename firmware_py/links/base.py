@@ -339,7 +339,8 @@ class FlowLink:
             log.warning("no serial port configured: %s messages are counted but not sent", self.protocol)
         self.transport = SerialTransport(port=config.port, baud=config.baud, stats=self.stats,
                                          max_queue_messages=self._queue_capacity(),
-                                         on_open=self._port_opened, on_sent=self._on_sent)
+                                         on_open=self._port_opened, on_sent=self._on_sent,
+                                         on_flow_gap=self._flow_gap)
         self.transport.try_open(host_us())
         self.transport.pump()
 
@@ -643,7 +644,8 @@ class FlowLink:
         for name, data, fields in self._encode_flow(interval):
             fields.setdefault("frames", interval.frame_count)
             self.transport.enqueue(OutgoingMessage(name=name, data=data, queued_host_us=now,
-                                                   capture_host_us=capture_host_us, fields=fields))
+                                                   capture_host_us=capture_host_us, fields=fields,
+                                                   flow=True, marker=interval.quality == 0))
         self.transport.pump(now)
 
     def _port_opened(self, now: int) -> None:
@@ -654,6 +656,11 @@ class FlowLink:
         if self.integrator.last_timestamp_us is not None:
             self._keepalive_in_interval = True
         self._on_open(now)
+
+    def _flow_gap(self) -> None:
+        # The transport dropped a report on a stalled line, and holds the good ones behind it
+        # until a quality-0 one goes out: the pending interval's report is that one.
+        self._keepalive_in_interval = True
 
     def _enqueue_other(self, name: str, data: bytes, fields: dict, now: int, *, first: bool = False) -> None:
         self.transport.enqueue(OutgoingMessage(name=name, data=data, queued_host_us=now, fields=fields),

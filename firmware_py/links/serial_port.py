@@ -110,6 +110,11 @@ class OutgoingMessage:
         Host time of the frame capture it reports, µs; None for messages without one.
     fields : dict
         Decoded values, for the message log.
+    flow : bool
+        A flow report (the autopilot times its interval from one to the next).
+    marker : bool
+        A flow report with quality 0 (the autopilot starts its next interval there and
+        uses nothing else of it).
     """
 
     name: str
@@ -117,6 +122,8 @@ class OutgoingMessage:
     queued_host_us: int = 0
     capture_host_us: int | None = None
     fields: dict = field(default_factory=dict)
+    flow: bool = False
+    marker: bool = False
 
 
 class SerialTransport:
@@ -150,13 +157,19 @@ class SerialTransport:
         queued while there was no port are dropped (counted as stale) before it.
     on_sent : callable, optional
         ``on_sent(message, host_us, latency_us)`` after a message was fully handed to the OS.
+    on_flow_gap : callable, optional
+        Called when a good flow report is dropped because one before it was (a stalled line:
+        the queue overflowed or its messages went stale). INAV, ArduPilot's MSP driver and
+        PX4 time a report's counts from the report before it, which the autopilot did not
+        get: good reports are held back until a quality-0 one (``marker``) has gone out,
+        which the caller should make its next.
     """
 
     def __init__(self, *, port: str | None, baud: int, stats: dict, max_queue_messages: int = 16,
                  max_age_s: float = 0.25, max_kernel_lag_s: float = 0.05,
                  reopen_initial_s: float = 0.5, reopen_max_s: float = 8.0,
                  stable_after_s: float = 5.0, summary_s: float = 60.0,
-                 on_open=None, on_sent=None):
+                 on_open=None, on_sent=None, on_flow_gap=None):
         self.port = port
         self.baud = int(baud)
         self.stats = stats
@@ -169,6 +182,9 @@ class SerialTransport:
         self.summary_us = int(summary_s * 1e6)
         self.on_open = on_open
         self.on_sent = on_sent
+        self.on_flow_gap = on_flow_gap
+        #: a flow report was dropped with the port open, and no quality-0 one has gone out since
+        self._flow_gap = False
         self.latencies_us: deque[int] = deque(maxlen=4096)
         self._serial = None
         self._fd: int | None = None
@@ -246,6 +262,7 @@ class SerialTransport:
         # period) and ArduPilot's MAVLink driver fuses as current.
         while self._queue:
             self._count_drop(self._queue.popleft(), stale=True)
+        self._flow_gap = False  # (the link's first report on the new connection has quality 0)
         if self.on_open is not None:
             self.on_open(now_us)
         return True
@@ -342,6 +359,8 @@ class SerialTransport:
             self._queue.append(message)
 
     def _count_drop(self, message: OutgoingMessage, *, stale: bool = False) -> None:
+        if message.flow and self._fd is not None:
+            self._flow_gap = True  # (with no port, the reopen starts afresh)
         self.stats["dropped_messages"] += 1
         if stale:
             self.stats["stale_messages"] += 1
@@ -376,6 +395,15 @@ class SerialTransport:
                 if now - message.queued_host_us > self.max_age_us:
                     self._count_drop(message, stale=True)
                     continue
+                if message.flow and self._flow_gap:
+                    if not message.marker:
+                        # its counts follow a report the autopilot never got, which its
+                        # interval would span: wait for a quality-0 report to restart it
+                        self._count_drop(message)
+                        if self.on_flow_gap is not None:
+                            self.on_flow_gap()
+                        continue
+                    self._flow_gap = False
                 self._current, self._current_offset = message, 0
             message = self._current
             try:
