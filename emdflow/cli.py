@@ -23,9 +23,13 @@ from pathlib import Path
 __all__ = ["main", "build_parser", "run_flow", "run_render"]
 
 
-def _auto_upscale(width: int) -> int:
-    """Integer enlargement that makes a flow video about 480 px wide (1..4)."""
-    return max(1, min(4, int(round(480 / max(1, width)))))
+def _auto_upscale(width: int, height: int) -> int:
+    """Integer enlargement that makes a flow video about 480 px wide (1..4), keeping an
+    enlarged video within :data:`~emdflow.tools.video_io.MAX_VIDEO_SIDE`."""
+    from emdflow.tools.video_io import MAX_VIDEO_SIDE
+
+    wide = max(1, min(4, int(round(480 / max(1, width)))))
+    return max(1, min(wide, MAX_VIDEO_SIDE // max(1, width, height)))
 
 
 def _add_video_io_arguments(p: argparse.ArgumentParser, codec_help: str) -> None:
@@ -44,9 +48,12 @@ def _add_video_io_arguments(p: argparse.ArgumentParser, codec_help: str) -> None
 
 def _open_input(args):
     """``(frames, fps)`` of INPUT after the options ``flow`` and ``render`` share are checked
-    (a bad ``--fps`` or ``--size``, an output that would overwrite the input: ToolError 2)."""
-    from emdflow.tools import open_input
+    (a bad ``--fps`` or ``--size``, an output that cannot be written or would overwrite the
+    input: ToolError 2)."""
+    from emdflow.tools import ToolError, open_input, output_problem
 
+    if problem := output_problem(args.output):  # (a folder: OpenCV's writer only says it cannot write)
+        raise ToolError(f"-o {args.output}: {problem}", 2)
     source = open_input(args)
     return source, source.fps or 30.0
 
@@ -74,11 +81,14 @@ def _add_flow_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-flow", type=float, default=6.0, metavar="PX",
                    help="flow drawn fully saturated by the colour wheel, px/frame (default %(default)s)")
     p.add_argument("--upscale", type=int, metavar="N",
-                   help="enlarge the video N times (default: to about 480 px wide, at most 4)")
+                   help="enlarge the video N times (default: to about 480 px wide, at most 4); "
+                        "an enlarged video is at most 8190 px a side")
     p.add_argument("--npz", metavar="PATH",
                    help="also save u, v (float16, NaN = undetected), flow_x, flow_y, quality per frame "
                         "(kept in memory until the end)")
-    p.add_argument("--flo-dir", metavar="DIR", help="also write every frame's field as DIR/frame_NNNNNN.flo")
+    p.add_argument("--flo-dir", metavar="DIR",
+                   help="also write every frame's field as DIR/frame_NNNNNN.flo (DIR new, or without "
+                        ".flo files of an earlier run)")
     p.add_argument("--snapshot", metavar="PNG", help="also save the last frame of the video as a PNG")
     add_engine_arguments(p)
 
@@ -92,14 +102,20 @@ def run_flow(args) -> int:
                                refuse_overwrite, refuse_same_outputs)
     from emdflow.tools.flo import write_flo
     from emdflow.tools.flowviz import render_flow_frame
-    from emdflow.tools.video_io import VideoWriter
+    from emdflow.tools.video_io import MAX_VIDEO_SIDE, VideoWriter
 
     check_positive("--max-flow", args.max_flow, "px/frame")
     check_count("--upscale", args.upscale)
-    for path in (args.npz, args.snapshot):
+    for option, path in (("--npz", args.npz), ("--snapshot", args.snapshot)):
         if path and (problem := output_problem(path)):
             raise ToolError(f"{path}: {problem}", 2)
-        refuse_overwrite(args.input, path)
+        refuse_overwrite(args.input, path, option)
+    if args.flo_dir and Path(args.flo_dir).is_dir():
+        # (a longer earlier run's frames would stay behind, mixed with this run's)
+        old = sum(1 for _ in Path(args.flo_dir).glob("frame_*.flo"))
+        if old:
+            raise ToolError(f"--flo-dir {args.flo_dir}: holds {old} .flo files of an earlier run; "
+                            "give an empty or new folder", 2)
     refuse_same_outputs((("-o", args.output), ("--npz", args.npz), ("--snapshot", args.snapshot),
                          ("--flo-dir", args.flo_dir)))
     if args.snapshot:
@@ -111,6 +127,14 @@ def run_flow(args) -> int:
             why = f"OpenCV cannot write {ext} images" if ext else "no file ending to choose the image type"
             raise ToolError(f"--snapshot {args.snapshot}: {why}; use .png", 2)
     source, fps = _open_input(args)
+    upscale = args.upscale or _auto_upscale(source.width, source.height)
+    big = (source.width * upscale, source.height * upscale)
+    if upscale > 1 and max(big) > MAX_VIDEO_SIDE:
+        # (OpenCV failed on it: an allocation traceback, or "cannot write a ffv1 video")
+        source.close()
+        raise ToolError(f"--upscale {upscale}: {source.width}x{source.height} frames would become "
+                        f"{big[0]}x{big[1]}; a flow video is at most {MAX_VIDEO_SIDE} px a side (at most "
+                        f"--upscale {max(1, MAX_VIDEO_SIDE // max(source.width, source.height))} here)", 2)
     writer = VideoWriter(args.output, fps, args.codec)
     flo_dir = None
     if args.flo_dir:
@@ -120,7 +144,6 @@ def run_flow(args) -> int:
         except OSError as e:
             raise ToolError(f"{args.flo_dir}: cannot create folder ({e.strerror})", 2) from None
     est = make_estimator(args, source.width, source.height)
-    upscale = args.upscale or _auto_upscale(source.width)
     store = {"u": [], "v": [], "flow_x": [], "flow_y": [], "quality": []} if args.npz else None
     n = 0
     interrupted = False

@@ -168,6 +168,33 @@ def test_flow_on_a_synthetic_input_with_snapshot(tmp_path, backend):
     np.testing.assert_array_equal(cv2.imread(str(snap)), frames[-1])  # FFV1 is lossless
 
 
+def test_flow_refuses_a_flo_dir_of_an_earlier_run(tmp_path, capsys, backend):
+    """A second run into the same --flo-dir left the longer first run's files behind,
+    mixed with its own; an empty existing folder is still taken."""
+    flo_dir = tmp_path / "flo"
+    flo_dir.mkdir()
+
+    def run(frames, video):
+        return main(["flow", f"synthetic:frames={frames},size=32x24", "-o", str(tmp_path / video),
+                     "--flo-dir", str(flo_dir), "--backend", backend, "-q"])
+
+    assert run(5, "a.avi") == 0
+    assert len(list(flo_dir.glob("frame_*.flo"))) == 5
+    assert run(3, "b.avi") == 2
+    _one_line_error(capsys, f"--flo-dir {flo_dir}: holds 5 .flo files of an earlier run", "empty or new folder")
+    assert not (tmp_path / "b.avi").exists()
+
+
+def test_flow_upscale_is_bounded_before_the_run(tmp_path, capsys, backend):
+    """--upscale had no bound: OpenCV failed on the enlarged frame (an allocation
+    traceback, or "cannot write a ... video here" after the first frame)."""
+    out = tmp_path / "big.mp4"
+    assert main(["flow", "synthetic:frames=3,size=16x16", "-o", str(out), "--upscale", "520",
+                 "--backend", backend, "-q"]) == 2
+    _one_line_error(capsys, "--upscale 520", "8320x8320", "at most 8190 px a side", "at most --upscale 511")
+    assert not out.exists()
+
+
 # ---------------------------------------------------------------------------------- frames
 
 
@@ -196,6 +223,15 @@ def test_frames_on_a_folder_to_stdout_via_python_m(clip, backend):
     assert lines[0] == "frame,t,flow_x,flow_y,quality"
     assert len(lines) == N + 1
     assert lines[1].split(",")[1] == ""  # no frame rate for a folder: t empty
+
+
+def test_frames_output_dash_is_stdout(tmp_path, monkeypatch, capsys, backend):
+    """``-o -`` wrote a file named "-"; it is stdout, where the CSV goes without -o."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["frames", "synthetic:frames=3,size=32x24", "-o", "-", "--backend", backend]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "frame,t,flow_x,flow_y,quality" and len(lines) == 4
+    assert not (tmp_path / "-").exists()
 
 
 # ------------------------------------------------------------------------------------ eval
@@ -249,6 +285,21 @@ def test_eval_csv_table_and_plot(tmp_path, backend, capsys):
     capsys.readouterr()
     assert main(["eval", "--from-csv", str(bad)]) == 2
     _one_line_error(capsys, bad)
+
+
+def test_eval_from_csv_without_engine_rows_is_an_error(tmp_path, capsys):
+    """A CSV with its header only, or with DIS rows only, printed an empty table, exit 0."""
+    from emdflow.tools.evaluate import CSV_COLUMNS, write_csv
+
+    empty = tmp_path / "empty.csv"
+    write_csv([], empty)
+    assert main(["eval", "--from-csv", str(empty), "--plot", ""]) == 2
+    _one_line_error(capsys, f"{empty}: no rows")
+    dis_only = tmp_path / "dis.csv"
+    write_csv([{**dict.fromkeys(CSV_COLUMNS, 0.5), "variant": "base", "method": "dis", "speed": 1.0,
+                "frames": 2}], dis_only)
+    assert main(["eval", "--from-csv", str(dis_only), "--plot", ""]) == 2
+    _one_line_error(capsys, f"{dis_only}: no engine rows (only DIS)")
 
 
 def test_plots_without_matplotlib(tmp_path, monkeypatch, capsys):
@@ -726,6 +777,45 @@ def test_render_writes_the_frames_the_daemon_reads_back_exactly(tmp_path, capsys
         _one_line_error(capsys, option, "at least 1")
 
 
+def test_a_hard_link_to_the_input_is_the_input(tmp_path, capsys):
+    """A hard link is the input under another name (Path.resolve does not see it): render
+    read 6 of 40 frames and wrote over its own input."""
+    src, link = tmp_path / "src.mkv", tmp_path / "hl.mkv"
+    assert main(["render", "synthetic:frames=40,size=32x24", "-o", str(src), "-q"]) == 0
+    try:
+        os.link(src, link)
+    except OSError as e:
+        pytest.skip(f"no hard links here: {e}")
+    before = src.read_bytes()
+    for argv in (["render", str(src), "-o", str(link)],
+                 ["frames", str(src), "-o", str(link), "--backend", "numpy"],
+                 ["flow", str(src), "-o", str(tmp_path / "o.avi"), "--snapshot", str(link), "--backend", "numpy"],
+                 ["flow", str(src), "-o", str(tmp_path / "o.avi"), "--npz", str(link), "--backend", "numpy"]):
+        assert main(argv) == 2
+        _one_line_error(capsys, str(link), "would overwrite the input")
+    assert src.read_bytes() == before
+
+
+def test_no_image_output_into_the_input_folder(tmp_path, capsys, clip, backend):
+    """A snapshot (or any image-named output) in the folder of images being read became a
+    frame of the next run over it, or stopped it with a frame of another size."""
+    _, folder, _ = clip
+    listed = sorted(folder.iterdir())
+    alias = tmp_path / "alias"
+    alias.symlink_to(folder, target_is_directory=True)
+    video = str(tmp_path / "o.avi")
+    for argv, name in (
+            (["flow", str(folder), "-o", video, "--snapshot", str(folder / "snap.png")], "--snapshot"),
+            (["flow", str(alias), "-o", video, "--snapshot", str(folder / "snap.JPG")], "--snapshot"),
+            (["frames", str(folder), "-o", str(folder / "rows.tif")], "-o")):
+        assert main([*argv, "--backend", backend, "-q"]) == 2
+        _one_line_error(capsys, name, "an image in the input folder", "read as a frame")
+    assert sorted(folder.iterdir()) == listed and not Path(video).exists()
+    # beside the folder, and other files in it, are still fine
+    assert main(["flow", str(folder), "-o", video, "--snapshot", str(tmp_path / "snap.png"), "--max-frames", "2",
+                 "--backend", backend, "-q"]) == 0
+
+
 # --------------------------------------------------------------------------------- devices
 
 
@@ -798,6 +888,12 @@ def test_output_mistakes_are_found_before_the_run(tmp_path, capsys, clip, backen
     video = str(tmp_path / "o.avi")
     assert main(["flow", str(clip[0]), "-o", video, "--npz", str(folder), "--backend", backend]) == 2
     _one_line_error(capsys, folder, "is a folder")
+    videos = tmp_path / "d.mkv"
+    videos.mkdir()
+    for argv in (["flow", str(clip[0]), "-o", str(videos), "--backend", backend],
+                 ["render", str(clip[0]), "-o", str(videos)]):
+        assert main(argv) == 2  # (it said "OpenCV cannot write a ffv1 video here")
+        _one_line_error(capsys, f"-o {videos}: is a folder")
     assert main(["flow", str(clip[0]), "-o", video, "--npz", video, "--backend", backend]) == 2
     _one_line_error(capsys, f"--npz {video}: the same file as -o {video}")
     assert not Path(video).exists()

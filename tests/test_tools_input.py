@@ -219,6 +219,7 @@ def test_far_and_receding_flights_end():
     ("synthetic:noise=inf,frames=5", ["noise", "finite"]),
     ("synthetic:fps=nan,frames=5", ["fps", "finite"]),
     ("synthetic:frames=5,zoom=-1", ["zoom=-1", "> -1"]),
+    ("synthetic:frames=5,noise=-5", ["noise=-5", "0 or more"]),                  # taken as no noise
     ("synthetic:frames=100000000000000000000", ["frames=100000000000000000000", "at most"]),  # OverflowError
 ])
 def test_synthetic_input_rejects_what_it_cannot_render(uri, names):

@@ -178,19 +178,43 @@ def check_count(option: str, value) -> None:
         raise ToolError(f"{option} {value}: must be at least 1", 2)
 
 
-def refuse_overwrite(input_path, output_path) -> None:
-    """Raise ToolError (code 2) when the output file is the input itself (checked before the
-    input is read: writing would destroy it)."""
+def _same_file(a, b) -> bool:
+    """Whether ``a`` and ``b`` are one file or folder on disk (also through a hard link, which
+    ``Path.resolve`` does not see); False when either does not exist."""
+    import os
+
+    try:
+        return os.path.samefile(a, b)
+    except (OSError, ValueError):
+        return False
+
+
+def refuse_overwrite(input_path, output_path, option: str = "") -> None:
+    """Raise ToolError (code 2) naming ``option`` and the output when the output file is the
+    input itself, also through a symbolic or hard link (checked before the input is read:
+    writing would destroy it), or an image file in the input folder of images (the next
+    run over the folder would read it as a frame)."""
     from pathlib import Path
 
-    if input_path and output_path and Path(input_path).resolve() == Path(output_path).resolve():
-        raise ToolError(f"{output_path}: output would overwrite the input", 2)
+    from emdflow.tools.video_io import IMAGE_EXTENSIONS
+
+    if not (input_path and output_path):
+        return
+    name = f"{option} {output_path}" if option else str(output_path)
+    source, target = Path(input_path), Path(output_path)
+    if source.resolve() == target.resolve() or _same_file(source, target):
+        raise ToolError(f"{name}: output would overwrite the input", 2)
+    if (source.is_dir() and target.suffix.lower() in IMAGE_EXTENSIONS
+            and _same_file(target.resolve().parent, source)):
+        raise ToolError(f"{name}: an image in the input folder {input_path} would be read as a frame by "
+                        "the next run; write it elsewhere", 2)
 
 
 def open_input(args):
     """The frame source of ``args.input`` after the input options the tools share are
-    checked (``--fps``, ``--max-frames``, ``--size``, and ``args.output`` not the input
-    itself: ToolError 2), opened with them (:func:`emdflow.tools.video_io.open_frames`)."""
+    checked (``--fps``, ``--max-frames``, ``--size``, and ``args.output`` neither the input
+    itself nor an image in its folder, :func:`refuse_overwrite`: ToolError 2), opened with
+    them (:func:`emdflow.tools.video_io.open_frames`)."""
     from emdflow.tools.video_io import open_frames, parse_size
 
     check_positive("--fps", args.fps, "frames/s")
@@ -199,7 +223,7 @@ def open_input(args):
         size = parse_size(args.size) if args.size else None
     except ValueError as e:
         raise ToolError(f"--size: {e}", 2) from None
-    refuse_overwrite(args.input, args.output)
+    refuse_overwrite(args.input, args.output, "-o")
     return open_frames(args.input, size=size, fps=args.fps, max_frames=args.max_frames)
 
 

@@ -798,7 +798,12 @@ def run(args) -> int:
             rows = read_csv(args.from_csv)
         except ValueError as e:
             raise ToolError(str(e), 2) from None
-        label = next((r["method"] for r in rows if r["method"] != "dis"), args.label)
+        # (an empty table and exit 0 read as a run that measured nothing wrong)
+        if not rows:
+            raise ToolError(f"{args.from_csv}: no rows", 2)
+        label = next((r["method"] for r in rows if r["method"] != "dis"), None)
+        if label is None:
+            raise ToolError(f"{args.from_csv}: no engine rows (only DIS)", 2)
         print(format_table(rows, engine_label=label))
         if args.markdown:
             Path(args.markdown).write_text(format_markdown(rows, engine_label=label))

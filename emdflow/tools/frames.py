@@ -70,7 +70,7 @@ def add_arguments(p) -> None:
 
     p.add_argument("input", metavar="INPUT",
                    help="video file, folder of images, one image, or synthetic:KEY=VALUE,... (see 'emdflow flow -h')")
-    p.add_argument("-o", "--output", metavar="CSV", help="write here instead of stdout")
+    p.add_argument("-o", "--output", metavar="CSV", help="write here instead of stdout ('-': stdout)")
     p.add_argument("--fps", type=float, help="frame rate (overrides the video's; needed for folders)")
     p.add_argument("--focal-length-px", type=float, metavar="F",
                    help="focal length in pixels at the processed size: adds rate_x, rate_y (rad/s)")
@@ -86,6 +86,8 @@ def run(args) -> int:
     from emdflow.tools import ToolError, check_positive, make_estimator, open_input, progress_bar
 
     check_positive("--focal-length-px", args.focal_length_px, "px")
+    if args.output == "-":  # the usual name of stdout, where the CSV goes without -o (it made a file "-")
+        args.output = None
     source = open_input(args)
     if args.focal_length_px is not None and not source.fps:
         raise ToolError(f"{args.input}: no frame rate known; rates need --fps", 2)

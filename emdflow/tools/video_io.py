@@ -30,6 +30,7 @@ import numpy as np
 __all__ = [
     "IMAGE_EXTENSIONS",
     "CODECS",
+    "MAX_VIDEO_SIDE",
     "InputError",
     "OutputError",
     "parse_size",
@@ -53,6 +54,11 @@ CODECS = {
     "mjpg": ("MJPG", (".avi", ".mkv")),
     "mp4v": ("mp4v", (".mp4", ".avi", ".mkv")),
 }
+
+#: Longest side, px, every codec of :data:`CODECS` writes here: the bound of an enlarged
+#: flow video (measured with OpenCV 5.0's FFmpeg: mp4v opens 8190 px but not 8192, sides
+#: being stored even; FFV1 and MJPG open 8192x8192, neither 16384x16384).
+MAX_VIDEO_SIDE = 8190
 
 
 class InputError(ValueError):
@@ -241,7 +247,7 @@ def parse_synthetic(uri: str) -> dict:
     """Parse ``synthetic:KEY=VALUE,...`` into a dict of :data:`SYNTHETIC_DEFAULTS` keys.
 
     Keys: ``texture`` (bundled name or image file), ``u``, ``v`` (px/frame), ``frames``,
-    ``size`` (WxH), ``noise`` (σ, gray levels), ``contrast``, ``drift`` (relative exposure
+    ``size`` (WxH), ``noise`` (σ ≥ 0, gray levels), ``contrast``, ``drift`` (relative exposure
     change over the clip), ``zoom`` (scale growth per frame, > -1), ``fps``, ``seed``.
     Numbers must be finite.
 
@@ -279,6 +285,8 @@ def parse_synthetic(uri: str) -> dict:
         raise InputError(f"{uri}: frames={opts['frames']}: at most {MAX_SYNTHETIC_FRAMES}")
     if opts["zoom"] <= -1.0:  # the image scale (1 + zoom)**t would reach 0
         raise InputError(f"{uri}: zoom={opts['zoom']:g}: must be > -1 (scale growth per frame)")
+    if opts["noise"] < 0:  # (the renderer took a negative σ as no noise, silently)
+        raise InputError(f"{uri}: noise={opts['noise']:g}: must be 0 or more (σ, gray levels)")
     return opts
 
 
