@@ -34,7 +34,7 @@ import numpy as np
 import emdflow
 from emdflow.cues import looming_cues
 
-from .angular import TURN_GAIN_WARNING, RecentIntervals, fov_deg_from_focal_length_px, turn_gain
+from .angular import TURN_GAIN_WARNING, RecentIntervals, apply_mounting, fov_deg_from_focal_length_px, turn_gain
 from .clock import host_us
 from .config import Config, ConfigError
 from .links import FlowSample
@@ -822,12 +822,16 @@ class Daemon:
         cues = looming_cues(field) if self.config.link.extra_values else None
         t2 = host_us()
         extras = ()
-        if cues is not None:
+        if cues is not None and not cues.detections:
+            # no cue (history filling, a brightness step, thin evidence): "unknown", as the
+            # gyro fields say it, not a measured 0 (no expansion) and -1 (not approaching)
+            extras = tuple((name, math.nan) for name in ("expansion", "ttc_s", "balanceLR", "balanceTB"))
+        elif cues is not None:
             frame_s = self._frame_interval_s()
             ttc_s = cues.time_to_contact_frames * frame_s
             extras = (("expansion", cues.expansion_rate / frame_s),  # 1/s
                       ("ttc_s", ttc_s if math.isfinite(ttc_s) else -1.0),
-                      ("balanceLR", cues.balance_lr), ("balanceTB", cues.balance_tb))
+                      *zip(("balanceLR", "balanceTB"), self._mounted_balance(cues)))
         self.link.submit(FlowSample(timestamp_us=frame.timestamp_us, capture_host_us=frame.capture_host_us,
                                     flow_x=summary.flow_x, flow_y=summary.flow_y, quality=summary.quality,
                                     extras=extras), now_host_us=t2)
@@ -841,6 +845,14 @@ class Daemon:
         self._prev = frame
         self._last_frame_host_s = now_s
         self.subset.observe_busy((t3 - t0) / 1e6, now_s)
+
+    def _mounted_balance(self, cues) -> tuple[float, float]:
+        """The left/right and top/bottom balance in the axes of a default-mounted camera,
+        as the flow is sent: a balance is a vector in image axes (a mirror swaps left and
+        right, a quarter turn left/right with top/bottom)."""
+        optics = self.config.optics
+        return apply_mounting(cues.balance_lr, cues.balance_tb, rotation_deg=optics.mounting_rotation_deg,
+                              mirror=optics.mounting_mirror)
 
     def _gap_s(self, configured_s: float) -> float:
         """``configured_s``, or :data:`_GAP_INTERVALS` typical processed intervals when the

@@ -5,11 +5,13 @@ a real pty (pymavlink, the MSP v2 decoder) and from the link's message log (host
 from __future__ import annotations
 
 import csv
+import math
 import os
 import statistics
 import sys
 import time
 
+import numpy as np
 import pytest
 
 import emdflow
@@ -157,3 +159,28 @@ def test_extra_values_use_the_real_frame_interval(tmp_path):
     assert len(expansion) >= 3
     assert statistics.median(expansion) == pytest.approx(rate_per_frame * 50, rel=0.3)   # not × 100
     assert statistics.median(ttc) == pytest.approx(1 / (rate_per_frame * 50), rel=0.3)
+
+
+def test_extra_values_are_unknown_without_a_cue_and_in_the_mounted_axes(tmp_path):
+    """Before the history is full there is no cue: the extras say NaN ("unknown", as the
+    gyro fields do), not a measured expansion 0 and ttc -1 (which also means receding).
+    The balances are turned to a default-mounted camera's axes as the flow is: the same
+    flight seen through a mirror, with mounting_mirror, gives the same balance (it flipped)."""
+    flight = CameraFlight("gravel", width=160, height=120, flow=(1.5, 0.0), expansion_rate=0.01,
+                          noise_sigma=1.0, supersample=2, seed=0)
+    frames = flight.render_many(60)
+    balances = {}
+    for mirror in (False, True):
+        clip = write_video(tmp_path / f"zoom{int(mirror)}.mkv",
+                           np.ascontiguousarray(frames[:, :, ::-1]) if mirror else frames, fps=50.0)
+        config = _config(f"video:{clip}", autopilot="ardupilot", model="extended",
+                         settings={("link", "extra_values"): True, ("optics", "mounting_mirror"): mirror})
+        code, daemon, data = run_daemon(config, frames=60)
+        assert code == 0
+        named = [m for m in parse_mavlink(data) if m.get_type() == "NAMED_VALUE_FLOAT"]
+        early = [m for m in named if m.time_boot_ms < 100]      # the extended model's history fills
+        assert {m.name for m in early} == {"expansion", "ttc_s", "balanceLR", "balanceTB"}
+        assert all(math.isnan(m.value) for m in early), [(m.name, m.value) for m in early]
+        balances[mirror] = statistics.median(m.value for m in named if m.name == "balanceLR" and m.time_boot_ms >= 300)
+    assert abs(balances[False]) > 0.05
+    assert balances[True] == pytest.approx(balances[False], abs=0.05)
