@@ -585,6 +585,7 @@ class Daemon:
         else:
             self.focal_length_px = self._focal_length_of(source)
             self._geometry_crop = source.crop_fraction
+            self.fps = source.fps  # (a camera may run at another rate than the one asked)
         return keeper
 
     def _focal_length_of(self, source: FrameSource) -> float:

@@ -16,7 +16,7 @@ import pytest
 from firmware_py.angular import focal_length_px_from_fov
 from firmware_py.clock import host_us
 from firmware_py.config import Config
-from firmware_py.sources import Frame, SourceConfigError, SourceError, make_source, open_source, parse_uri
+from firmware_py.sources import Frame, FrameError, SourceConfigError, SourceError, make_source, open_source, parse_uri
 from firmware_py.sources.v4l2 import V4L2Source, raw_to_gray
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # shared helpers
 from daemon_util import flight_frames, run_isolated_from_native_crashes, write_video  # noqa: E402
@@ -681,6 +681,74 @@ def test_v4l2_pixel_format_aliases_are_read(delivered, used, caplog):
     _check_frame(frame, 64, 48)
     assert np.abs(frame.image.astype(int) - luma).mean() < 3
     source.close()
+
+
+@pytest.mark.parametrize("fmt", ["BGR3", "RGB3"])
+@pytest.mark.parametrize("layout", ["flat", "3-D"])
+def test_v4l2_driver_colour_is_read_as_colour(fmt, layout):
+    """A camera that refuses GREY falls back to the driver's BGR24 (the Pi's legacy CSI
+    driver offers no GREY): recent OpenCV hands it out as a flat row with CONVERT_RGB off,
+    which was read as GREY (each pixel three times), and RGB3 was weighted as BGR."""
+    rng = np.random.default_rng(3)
+    colour = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    expected = cv2.cvtColor(colour, cv2.COLOR_RGB2GRAY if fmt == "RGB3" else cv2.COLOR_BGR2GRAY)
+    raw = colour.reshape(1, -1) if layout == "flat" else colour
+    source = V4L2Source("0", width=64, height=48, pixel_format="GREY",
+                        capture_factory=lambda d, a: _FakeV4L2Capture(d, a, buffers=lambda i: raw.copy(),
+                                                                      fourcc=fmt, size=(64, 48)))
+    source.open()
+    try:
+        frame = source.read()
+    finally:
+        source.close()
+    assert np.array_equal(frame.image, expected) and source.bad_frames == 0
+    red = np.zeros((48, 64, 3), np.uint8)
+    red[..., 0 if fmt == "RGB3" else 2] = 200   # pure red in the format's own channel order
+    assert raw_to_gray(red.reshape(1, -1), fmt, 64, 48)[0, 0] == 60
+
+
+def test_v4l2_buffers_with_padded_rows_or_a_wrong_length():
+    """Drivers that pad each row to a stride (the Pi's unicam: 16 or 32 bytes) are read row
+    by row; a buffer that fits neither the size nor a stride is a bad frame. Longer buffers
+    were cut to the expected length: sheared images that passed as good ones."""
+    luma = _luma(100, 24)
+    padded = np.zeros((24, 112), np.uint8)
+    padded[:, :100] = luma
+    assert np.array_equal(raw_to_gray(padded.reshape(1, -1), "GREY", 100, 24), luma)
+    yuyv = np.full((24, 256), 128, np.uint8)
+    yuyv[:, 0:200:2] = luma
+    assert np.array_equal(raw_to_gray(yuyv.reshape(1, -1), "YUYV", 100, 24), luma)
+    nv12 = np.full((36, 128), 128, np.uint8)   # 24 luma rows and 12 chroma rows, stride 128
+    nv12[:24, :100] = luma
+    assert np.array_equal(raw_to_gray(nv12.reshape(1, -1), "NV12", 100, 24), luma)
+    for bad in (np.zeros(100 * 24 + 7, np.uint8), np.zeros(100 * 24 * 4, np.uint8)):
+        with pytest.raises(FrameError, match=rf"GREY frame of {bad.size} bytes, expected 2400"):
+            raw_to_gray(bad, "GREY", 100, 24)
+    with pytest.raises(FrameError, match="MJPG frame of 0 bytes"):   # (a cv2.error from imdecode)
+        raw_to_gray(np.zeros((1, 0), np.uint8), "MJPG", 100, 24)
+
+
+def test_v4l2_rate_and_size_the_driver_settles_on(caplog):
+    """A camera that runs at another rate than the one asked says so, and source.fps is its
+    rate (OpenCV's setter succeeds for a rate the camera rounds); a driver that reports no
+    size gets it from an unpacked GREY buffer's shape (flat rows cannot tell)."""
+
+    class Rounded(_FakeV4L2Capture):
+        def get(self, prop):
+            return 30.0 if prop == cv2.CAP_PROP_FPS else super().get(prop)
+
+    big = _luma(96, 72)
+    source = V4L2Source("0", width=64, height=48, fps=100.0, capture_factory=lambda d, a: Rounded(
+        d, a, buffers=lambda i: big.copy(), size=(0, 0)))
+    with caplog.at_level("WARNING", logger="emdflowd.v4l2"):
+        source.open()
+    try:
+        frame = source.read()
+    finally:
+        source.close()
+    assert source.fps == 30.0 and "asked for 100 fps, the camera runs at 30 fps" in caplog.text
+    assert source.bad_frames == 0 and frame.image.shape == (48, 64)
+    assert np.abs(frame.image.astype(int) - cv2.resize(big, (64, 48), interpolation=cv2.INTER_AREA)).max() <= 1
 
 
 @pytest.mark.parametrize("delivered", ["Y16 ", "UYVY", "Y10 "])

@@ -17,6 +17,7 @@ the asked aspect ratio before resizing, so both axes get the same scale.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import stat
 import sys
@@ -50,6 +51,31 @@ _PLAUSIBLE_TIMESTAMP_US = 2_000_000
 BAD_FRAMES_BEFORE_REOPEN = 25
 
 
+#: Formats raw_to_gray reads besides PIXEL_FORMATS: planar 4:2:0 (the luma plane first, then
+#: half as many bytes of chroma) and a driver's own conversion to colour.
+_PLANAR = ("YU12", "YV12", "NV12", "NV21")
+_RAW_FORMATS = PIXEL_FORMATS + _PLANAR + _DRIVER_COLOUR
+#: Most padding a driver adds to a row (its stride over width x bytes per pixel; the Pi's
+#: unicam aligns rows to 16 or 32 bytes), bytes.
+_MAX_ROW_PADDING = 256
+
+
+def _image_rows(flat: np.ndarray, fmt: str, height: int, row_bytes: int) -> np.ndarray:
+    """The ``height`` rows of ``row_bytes`` bytes of a flat buffer: packed, or with each
+    row padded to a stride (as some drivers deliver them), for a planar 4:2:0 format its
+    luma plane. A buffer of any other length is a FrameError: cut to the expected length it
+    gave sheared images that passed as good ones."""
+    size = flat.size
+    planes = 1.5 if fmt in _PLANAR else 1.0  # (4:2:0: half a plane of chroma after the luma)
+    stride = size / (planes * height)
+    if stride == int(stride) and row_bytes <= stride < row_bytes + _MAX_ROW_PADDING:
+        stride = int(stride)
+        return flat[: height * stride].reshape(height, stride)[:, :row_bytes]
+    expected = int(planes * height * row_bytes)
+    raise FrameError(f"{fmt} frame of {size} bytes, expected {expected} ({row_bytes} bytes a row x {height} "
+                     f"rows{', and 4:2:0 chroma' if planes > 1 else ''}, or its rows padded to a stride)")
+
+
 def raw_to_gray(raw: np.ndarray, pixel_format: str, width: int, height: int) -> np.ndarray:
     """Turn what ``VideoCapture.read`` returns with ``CONVERT_RGB`` off into 2-D gray.
 
@@ -57,9 +83,11 @@ def raw_to_gray(raw: np.ndarray, pixel_format: str, width: int, height: int) -> 
     ----------
     raw : numpy.ndarray
         Raw buffer as OpenCV hands it out: (h, w) for GREY, (h, w, 2) or a flat byte row
-        for YUYV, a flat byte row for MJPG; (h, w, 3) BGR when the driver forced conversion.
+        for YUYV, a flat byte row for MJPG, planar 4:2:0 and (recent OpenCV) BGR3/RGB3,
+        (h, w, 3) for BGR3/RGB3 from older OpenCV. Rows padded to a stride are read.
     pixel_format : str
-        One of :data:`PIXEL_FORMATS`.
+        The format the driver delivers: one of :data:`PIXEL_FORMATS`, a planar 4:2:0
+        format (YU12, YV12, NV12, NV21: their luma plane) or BGR3/RGB3.
     width, height : int
         Size the driver delivers, px.
 
@@ -71,29 +99,33 @@ def raw_to_gray(raw: np.ndarray, pixel_format: str, width: int, height: int) -> 
     Raises
     ------
     FrameError
-        This buffer cannot be converted (an undecodable JPEG, a short GREY/YUYV buffer).
+        This buffer cannot be converted (an empty or undecodable JPEG, a buffer whose
+        length fits neither the size nor a padded stride).
     SourceError
         Unknown pixel format.
     """
-    if raw.ndim == 3 and raw.shape[2] == 3:
-        return cv2.cvtColor(raw, cv2.COLOR_BGR2GRAY)
+    if pixel_format not in _RAW_FORMATS:
+        raise SourceError(f"pixel format {pixel_format!r}: expected one of {', '.join(_RAW_FORMATS)}")
+    if pixel_format in _DRIVER_COLOUR or (raw.ndim == 3 and raw.shape[2] == 3):
+        # (older OpenCV hands a driver's colour out as (h, w, 3), newer as a flat row)
+        colour = raw if raw.ndim == 3 else _image_rows(raw.reshape(-1), "BGR3", height, 3 * width).reshape(
+            height, width, 3)
+        code = cv2.COLOR_RGB2GRAY if pixel_format == "RGB3" else cv2.COLOR_BGR2GRAY
+        return cv2.cvtColor(colour, code)
     if pixel_format == "MJPG":
+        if raw.size == 0:  # (imdecode asserts on an empty buffer: a cv2.error, not a bad frame)
+            raise FrameError("MJPG frame of 0 bytes: not a decodable JPEG")
         gray = cv2.imdecode(raw.reshape(-1), cv2.IMREAD_GRAYSCALE)
         if gray is None:
             raise FrameError(f"MJPG frame of {raw.size} bytes: not a decodable JPEG")
         return gray
-    flat = raw.reshape(-1)
-    if pixel_format == "GREY":
-        if flat.size < width * height:
-            raise FrameError(f"GREY frame of {flat.size} bytes, expected {width * height}")
-        return flat[: width * height].reshape(height, width)
     if pixel_format == "YUYV":
-        if flat.size < width * height * 2:
-            raise FrameError(f"YUYV frame of {flat.size} bytes, expected {width * height * 2}")
         # Y0 U Y1 V: one cvtColor pass extracts the luma into a contiguous image.
-        packed = flat[: width * height * 2].reshape(height, width, 2)
+        packed = _image_rows(raw.reshape(-1), "YUYV", height, 2 * width).reshape(height, width, 2)
         return cv2.cvtColor(packed, cv2.COLOR_YUV2GRAY_YUYV)
-    raise SourceError(f"pixel format {pixel_format!r}: expected one of {', '.join(PIXEL_FORMATS)}")
+    if raw.ndim == 2 and raw.shape == (height, width):
+        return raw  # GREY as OpenCV hands it out
+    return _image_rows(raw.reshape(-1), pixel_format, height, width)
 
 
 #: the Linux kernel's character-device major number of Video4Linux (/dev/video*)
@@ -169,6 +201,7 @@ class V4L2Source(FrameSource):
         if pixel_format not in PIXEL_FORMATS:
             raise SourceError(f"{self.uri}: pixel format {pixel_format!r}: expected one of {', '.join(PIXEL_FORMATS)}")
         self.pixel_format = pixel_format
+        self._raw_format = pixel_format   # what the driver delivers (raw_to_gray's format)
         self.buffer_count = int(buffer_count)
         self.exposure_us = exposure_us
         self.gain = gain
@@ -235,6 +268,9 @@ class V4L2Source(FrameSource):
         got_w, got_h = (got_w, got_h) if self._size_reported else (self.width, self.height)
         got_fourcc = int(cap.get(cv2.CAP_PROP_FOURCC))
         got_fmt = got_fourcc.to_bytes(4, "little").decode("ascii", "replace") if got_fourcc > 0 else self.pixel_format
+        # (a planar format or the driver's colour is read as such: as the asked format, its
+        # buffers were garbage frames that looked valid)
+        self._raw_format = got_fmt if got_fmt in _PLANAR + _DRIVER_COLOUR else _FORMAT_ALIASES.get(got_fmt, got_fmt)
         if got_fmt in _FORMAT_ALIASES:
             if _FORMAT_ALIASES[got_fmt] != self.pixel_format:
                 log.warning("%s: asked for %s, the driver delivers %s: read as %s", self.uri,
@@ -258,6 +294,11 @@ class V4L2Source(FrameSource):
             self.pixel_format = got_fmt
         self._size = (got_w, got_h)
         self._note_geometry(got_w, got_h)
+        # the rate the driver settled on (OpenCV's setter succeeds for a rate the camera rounds)
+        got_fps = float(cap.get(cv2.CAP_PROP_FPS))
+        if got_fps > 0 and math.isfinite(got_fps) and abs(got_fps - self.fps) > 0.01 * self.fps:
+            log.warning("%s: asked for %g fps, the camera runs at %g fps", self.uri, self.fps, got_fps)
+            self.fps = got_fps
         self._index = 0
         self._bad_in_row = 0
 
@@ -315,7 +356,14 @@ class V4L2Source(FrameSource):
             index = self._index
             self._index += 1  # a skipped buffer keeps its place: the gap shows in the indices
             try:
-                gray = raw_to_gray(raw, self.pixel_format, *self._size)
+                if (not self._size_reported and raw.ndim >= 2 and raw.shape[0] > 1 and raw.size
+                        and self._raw_format not in _PLANAR):  # (a planar buffer's rows hold chroma too)
+                    # a driver that did not say its size: an unpacked buffer's shape does
+                    self._size_reported = True
+                    if (raw.shape[1], raw.shape[0]) != self._size:
+                        self._size = (raw.shape[1], raw.shape[0])
+                        self._note_geometry(*self._size)
+                gray = raw_to_gray(raw, self._raw_format, *self._size)
                 got = (gray.shape[1], gray.shape[0])
                 if got != self._size:  # only a JPEG can decode to another size
                     if self._size_reported:
