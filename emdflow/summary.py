@@ -1245,7 +1245,7 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
             or shape[2] not in (HISTOGRAM_BINS, ORIENTATION_BINS)):  # (classes or not: see _model_of)
         # (a hand-made field's histogram of another shape was an IndexError or a reshape
         # error from inside the fit)
-        raise ValueError(f"summarize(): the field's histogram has shape {np.shape(field.histogram)}, its "
+        raise ValueError(f"summarize(): the field's histogram has shape {shape}, its "
                          f"parameters need ({field.params.evidence_axes}, {2 * len(field.params.channels)}, "
                          f"{field.params.histogram_bins}) (axis, code, bin)")
     if not field.ready or field.exposure_step:

@@ -202,7 +202,7 @@ def refuse_overwrite(input_path, output_path, option: str = "") -> None:
         return
     name = f"{option} {output_path}" if option else str(output_path)
     source, target = Path(input_path), Path(output_path)
-    if source.resolve() == target.resolve() or _same_file(source, target):
+    if _same_file(source, target):  # (through symbolic and hard links alike)
         raise ToolError(f"{name}: output would overwrite the input", 2)
     if (source.is_dir() and target.suffix.lower() in IMAGE_EXTENSIONS
             and _same_file(target.resolve().parent, source)):

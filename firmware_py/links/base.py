@@ -339,7 +339,7 @@ class FlowLink:
             log.warning("no serial port configured: %s messages are counted but not sent", self.protocol)
         self.transport = SerialTransport(port=config.port, baud=config.baud, stats=self.stats,
                                          max_queue_messages=self._queue_capacity(),
-                                         on_open=self._port_opened, on_sent=self._on_sent,
+                                         on_open=self._on_open, on_sent=self._on_sent,
                                          on_flow_gap=self._flow_gap)
         self.transport.try_open(host_us())
         self.transport.pump()
@@ -648,18 +648,10 @@ class FlowLink:
                                                    flow=True, marker=interval.quality == 0))
         self.transport.pump(now)
 
-    def _port_opened(self, now: int) -> None:
-        # The transport dropped the reports queued while the port was away: the autopilot's
-        # next interval begins at the first message on this connection, after the pending
-        # interval began, so the report that closes it goes out with quality 0 (as after a
-        # keep-alive) and the one after it is good again.
-        if self.integrator.last_timestamp_us is not None:
-            self._keepalive_in_interval = True
-        self._on_open(now)
-
     def _flow_gap(self) -> None:
-        # The transport dropped a report on a stalled line, and holds the good ones behind it
-        # until a quality-0 one goes out: the pending interval's report is that one.
+        # The port (re)opened, or the transport dropped a report on a stalled line: it holds
+        # good reports back until a quality-0 one goes out, and the pending interval's
+        # report is that one (the one after it is good again).
         self._keepalive_in_interval = True
 
     def _enqueue_other(self, name: str, data: bytes, fields: dict, now: int, *, first: bool = False) -> None:

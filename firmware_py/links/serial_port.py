@@ -154,12 +154,13 @@ class SerialTransport:
         many seconds (the single failures are debug lines), s.
     on_open : callable, optional
         Called after every successful (re)open, e.g. to queue a heartbeat; the messages
-        queued while there was no port are dropped (counted as stale) before it.
+        queued while there was no port are dropped (counted as stale) before it, and the
+        open is a flow gap (``on_flow_gap``).
     on_sent : callable, optional
         ``on_sent(message, host_us, latency_us)`` after a message was fully handed to the OS.
     on_flow_gap : callable, optional
-        Called when a good flow report is dropped because one before it was (a stalled line:
-        the queue overflowed or its messages went stale). INAV, ArduPilot's MSP driver and
+        Called at every (re)open, and when a good flow report is dropped because one before
+        it was (a stalled line: the queue overflowed or its messages went stale). INAV, ArduPilot's MSP driver and
         PX4 time a report's counts from the report before it, which the autopilot did not
         get: good reports are held back until a quality-0 one (``marker``) has gone out,
         which the caller should make its next.
@@ -260,9 +261,13 @@ class SerialTransport:
         # it would be a burst of old reports, which INAV and ArduPilot's MSP driver divide by
         # the time since the message before (1.6 ms apart at 115200 baud, not a report
         # period) and ArduPilot's MAVLink driver fuses as current.
+        # The autopilot's next interval begins at the first flow report on this connection,
+        # after the caller's pending one began: a flow gap, as after a drop on a stalled line.
         while self._queue:
             self._count_drop(self._queue.popleft(), stale=True)
-        self._flow_gap = False  # (the link's first report on the new connection has quality 0)
+        self._flow_gap = True
+        if self.on_flow_gap is not None:
+            self.on_flow_gap()
         if self.on_open is not None:
             self.on_open(now_us)
         return True

@@ -108,7 +108,7 @@ def raw_to_gray(raw: np.ndarray, pixel_format: str, width: int, height: int) -> 
         raise SourceError(f"pixel format {pixel_format!r}: expected one of {', '.join(_RAW_FORMATS)}")
     if pixel_format in _DRIVER_COLOUR or (raw.ndim == 3 and raw.shape[2] == 3):
         # (older OpenCV hands a driver's colour out as (h, w, 3), newer as a flat row)
-        colour = raw if raw.ndim == 3 else _image_rows(raw.reshape(-1), "BGR3", height, 3 * width).reshape(
+        colour = raw if raw.ndim == 3 else _image_rows(raw.reshape(-1), pixel_format, height, 3 * width).reshape(
             height, width, 3)
         code = cv2.COLOR_RGB2GRAY if pixel_format == "RGB3" else cv2.COLOR_BGR2GRAY
         return cv2.cvtColor(colour, code)
