@@ -111,7 +111,8 @@ class LinkConfigSection:
     message_rate_hz: float | None = _opt(None, minimum=MIN_MESSAGE_RATE_HZ, maximum=1000.0, doc="flow message rate",
                                          why=MIN_RATE_REASON)
     heartbeat_rate_hz: float = _opt(1.0, minimum=0.1, maximum=50.0, doc="heartbeat rate")
-    ground_distance_m: float | None = _opt(None, minimum=0.0, maximum=1000.0, doc="fixed ground distance, m")
+    ground_distance_m: float | None = _opt(None, minimum=0.01, maximum=1000.0, doc="fixed ground distance, m",
+                                           why="0 m would go out as a real reading; leave it unset for unknown")
     message_log: str | None = _opt(None, doc="CSV / JSON-lines log of sent messages")
     extra_values: bool = _opt(False, doc="send extra named values")
     # must equal INAV's opflow_scale, or INAV's rates come out scaled by the ratio

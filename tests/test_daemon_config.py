@@ -43,6 +43,8 @@ def _write(tmp_path, text):
     ("[camera]\nuri = 'x'\n", "unknown section [camera]"),
     ("[link]\nbaud = 'fast'\n", "[link] baud = 'fast': expected an integer"),
     ("[link]\nbaud = 300\n", "[link] baud = 300: must be >= 1200"),
+    # (PX4 reads a distance of 0 as a real 0 m range)
+    ("[link]\nground_distance_m = 0\n", "[link] ground_distance_m = 0.0: must be >= 0.01 (0 m would go out"),
     # (3 Hz was the floor: ArduPilot's EKF3 and INAV stop using flow older than 200 ms)
     ("[link]\nmessage_rate_hz = 6\n", ("[link] message_rate_hz = 6.0: must be >= 7.0 (ArduPilot's EKF3 uses "
                                       "optical flow only while its newest sample is < 200 ms old, and INAV "

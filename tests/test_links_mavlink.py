@@ -233,6 +233,12 @@ def test_ground_distance_and_ids(peer):
     assert flow[0].get_srcSystem() == 42 and flow[0].get_srcComponent() == 159
 
 
+def test_a_ground_distance_of_zero_goes_out_as_unknown(peer):
+    # (the config refuses 0; a LinkConfig made in code gets -1, not a real 0 m range)
+    _, flow, rad = fly(peer, flow_x=0.0, flow_y=1.0, frames=20, ground_distance_m=0.0)
+    assert flow[0].ground_distance == -1.0 and rad[0].distance == -1.0
+
+
 def test_integration_time_is_real_elapsed_time_and_drops_do_not_spike(peer):
     link = make_link(peer, autopilot="px4", message_rate_hz=50)
     # 100 fps with every 7th frame lost: the next frame carries two frames of motion.

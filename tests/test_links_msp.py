@@ -178,6 +178,45 @@ def test_remainder_carry_small_flow(peer):
     assert sum(counts) == pytest.approx(-0.4 * len(messages), abs=1)
 
 
+def test_a_quality0_report_leaves_no_remainder_to_the_next_good_one(peer):
+    # 0.4 counts per 50 Hz report (one count per pixel, 0.2 px/frame at 100 fps). An engine
+    # stall makes the link send a keep-alive; the report that then closes the interval
+    # still carries its frames' counts, with quality 0. The first good report after it must
+    # start from a clean carry (0.4 rounds to 0), as after a fresh start: one count left
+    # over from the quality-0 report is motion INAV would take from before its interval.
+    from firmware_py.links import FlowSample
+
+    f = 10.5 * 180.0 / math.pi
+    link = open_link(LinkConfig(port=peer.path, autopilot="inav", focal_length_px=f))
+    start, sink = host_us(), bytearray()
+
+    def frame(i, host_offset_us):
+        now = start + host_offset_us
+        link.submit(FlowSample(timestamp_us=1_000_000 + i * 10_000, capture_host_us=now, flow_x=0.0,
+                               flow_y=0.2, quality=200), now)
+        link.service(now)
+        sink.extend(peer.read())
+
+    try:
+        for i in range(11):
+            frame(i, i * 10_000)
+        link.service(start + 260_000)  # no frame for 0.16 s: a keep-alive
+        sink.extend(peer.read())
+        for i in range(11, 21):
+            frame(i, 260_000 + (i - 10) * 10_000)
+    finally:
+        link.close()
+        sink.extend(peer.read())
+    reports = optic_flow(bytes(sink))
+    qualities = [q for q, _, _ in reports]
+    last_zero = max(i for i, q in enumerate(qualities) if q == 0)
+    assert last_zero > 1 and qualities[1] == 200  # keep-alive and closing report after good ones
+    assert qualities[last_zero - 1] == 0
+    first_good = reports[last_zero + 1]
+    assert first_good[0] == 200
+    assert first_good[2] == 0, reports
+
+
 def test_counts_per_degree_setting(peer):
     _, messages = run_inav(peer, flow_x=0.0, flow_y=2.0, msp_counts_per_degree=21.0)
     assert sum(m[2] for m in messages) == pytest.approx(-21.0 * math.degrees(len(messages) * 0.01), abs=1)

@@ -170,7 +170,7 @@ class LinkConfig:
     heartbeat_rate_hz : float
         MAVLink HEARTBEAT rate, Hz (also while the camera is blind).
     ground_distance_m : float or None
-        Fixed known distance to the ground, m; None sends -1 (unknown).
+        Fixed known distance to the ground, m; None (or a value <= 0) sends -1 (unknown).
     message_log : str or None
         ``*.csv`` or ``*.jsonl`` path of a log of every message written, or None.
     extra_values : bool
@@ -641,7 +641,12 @@ class FlowLink:
         self.stats["flow_reports"] += 1
         if interval.quality == 0:
             self._reset_carry()
-        for name, data, fields in self._encode_flow(interval):
+        messages = self._encode_flow(interval)
+        if interval.quality == 0:
+            # ... and its own rounding remainder: a quality-0 report with counts (closing an
+            # interval after a keep-alive or a flow gap) would hand it to the next good one
+            self._reset_carry()
+        for name, data, fields in messages:
             fields.setdefault("frames", interval.frame_count)
             self.transport.enqueue(OutgoingMessage(name=name, data=data, queued_host_us=now,
                                                    capture_host_us=capture_host_us, fields=fields,

@@ -129,7 +129,7 @@ class MavlinkLink(FlowLink):
         self._last_extras_us: int | None = None  # capture time of the last extra values sent
         self.extras_rate_hz = 0.0                  # chosen with the flow rate (_choose_rate)
         self._distance = (float(config.ground_distance_m)
-                          if config.ground_distance_m is not None and config.ground_distance_m >= 0 else -1.0)
+                          if config.ground_distance_m is not None and config.ground_distance_m > 0 else -1.0)
         super().__init__(config)
         self.stats.update({"message_set": "+".join(self.message_set), "rx_messages": {},
                            "rx_garbage_bytes": 0, "rx_heartbeat": None})
