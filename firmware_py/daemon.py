@@ -58,6 +58,9 @@ _GAP_INTERVALS = 3.0
 # its reopen back-off start again from the first delay (one frame and a failure is no
 # recovery; the extended model needs 12 frames before its first flow).
 _STEADY_S = 5.0
+# Two steps between processed frames whose capture times differ by more than this ratio are
+# uneven (one frame a camera dropped doubles a step; timestamps jitter far less than that).
+_UNEVEN_STEP_RATIO = 1.4
 
 
 def choose_threading(setting: str, *, live: bool) -> str:
@@ -85,7 +88,7 @@ class Stats:
     """
 
     COUNTERS = ("frames_in", "processed", "skipped", "dropped", "bad_frames", "resets",
-                "reopens", "blind_periods")
+                "reopens", "blind_periods", "uneven")
     STAGES = ("capture", "wait", "engine", "summary", "link")
 
     def __init__(self):
@@ -530,6 +533,8 @@ class Daemon:
         self.exit_code = 0
         self.running = threading.Event()
         self._prev: Frame | None = None
+        #: (index step, capture µs) from the processed frame before ``_prev`` to it, or None
+        self._prev_step: tuple[int, int] | None = None
         self._processed_intervals = RecentIntervals()  # capture µs between processed frames
         self._last_frame_host_s = time.monotonic()
         self._blind_logged = False
@@ -797,8 +802,9 @@ class Daemon:
             return
         prev = self._prev
         gap_us = self._gap_s(self.config.engine.reset_after_gap_s) * 1e6
-        if prev is not None and (frame.timestamp_us <= prev.timestamp_us or frame.index <= prev.index
-                                 or frame.timestamp_us - prev.timestamp_us > gap_us):
+        reset = prev is not None and (frame.timestamp_us <= prev.timestamp_us or frame.index <= prev.index
+                                      or frame.timestamp_us - prev.timestamp_us > gap_us)
+        if reset:
             self.estimator.reset()
             self.stats.resets += 1
             if frame.index <= prev.index or frame.timestamp_us <= prev.timestamp_us:
@@ -808,6 +814,16 @@ class Daemon:
                          (frame.timestamp_us - prev.timestamp_us) / 1e6, frame.index, prev.index)
         if prev is not None:  # after the gap test: a stall must not widen its own threshold
             self._processed_intervals.add(frame.timestamp_us - prev.timestamp_us)
+        # The velocity templates compare the motion of the last two steps between processed
+        # frames (A->B over one, B->C over the next): after a frame the camera or a paced file
+        # dropped, or a change of the steady subset, those two steps differ for this frame
+        # and the next, and what the detector reports then is not the flow (too little, or
+        # twice it, at a fair quality). Sent with quality 0; the state is kept (a reset
+        # would blind the extended model for 12 frames).
+        # (no step to compare across a reset: the history refills)
+        step = None if prev is None or reset else (frame.index - prev.index, frame.timestamp_us - prev.timestamp_us)
+        uneven = step is not None and self._prev_step is not None and _uneven_steps(self._prev_step, step)
+        self._prev_step = step
         if self._blind_logged:
             log.info("source delivering again")
             self._blind_logged = False
@@ -833,9 +849,11 @@ class Daemon:
             extras = (("expansion", cues.expansion_rate / frame_s),  # 1/s
                       ("ttc_s", ttc_s if math.isfinite(ttc_s) else -1.0),
                       *zip(("balanceLR", "balanceTB"), self._mounted_balance(cues)))
+        if uneven:
+            self.stats.uneven += 1
         self.link.submit(FlowSample(timestamp_us=frame.timestamp_us, capture_host_us=frame.capture_host_us,
-                                    flow_x=summary.flow_x, flow_y=summary.flow_y, quality=summary.quality,
-                                    extras=extras), now_host_us=t2)
+                                    flow_x=summary.flow_x, flow_y=summary.flow_y,
+                                    quality=0 if uneven else summary.quality, extras=extras), now_host_us=t2)
         t3 = host_us()
         self.stats.stage("engine", t1 - t0)
         self.stats.stage("summary", t2 - t1)
@@ -915,12 +933,13 @@ class Daemon:
             t = self.stats.totals()
             return (f"total: in {t['frames_in']} processed {t['processed']} skipped {t['skipped']} "
                     f"dropped {t['dropped']} bad {t['bad_frames']} resets {t['resets']} "
-                    f"reopens {t['reopens']} blind {t['blind_periods']} | link {_link_stats(st, final=True)} | "
+                    f"reopens {t['reopens']} blind {t['blind_periods']} uneven {t['uneven']} | link {_link_stats(st, final=True)} | "
                     f"latency capture->serial p50 {lat50 / 1000:.2f} ms p99 {lat99 / 1000:.2f} ms "
                     f"(n={len(self.latencies_us)})")
         rate = iv["processed"] / period_s if period_s else 0.0
         return (f"{rate:.1f} fps processed (in {iv['frames_in']} proc {iv['processed']} "
-                f"skip {iv['skipped']} drop {iv['dropped']} bad {iv['bad_frames']} k={self.subset.k}) | "
+                f"skip {iv['skipped']} drop {iv['dropped']} bad {iv['bad_frames']}"
+                f"{f' uneven {u}' if (u := iv['uneven']) else ''} k={self.subset.k}) | "
                 f"ms capture {iv['capture_ms']:.2f} wait {iv['wait_ms']:.2f} engine {iv['engine_ms']:.2f} "
                 f"(max {iv['engine_max_ms']:.1f}) summary {iv['summary_ms']:.2f} link {iv['link_ms']:.2f} | "
                 f"link {_link_stats(st)} | latency p50 {lat50 / 1000:.2f} ms p99 {lat99 / 1000:.2f} ms | {flow}")
@@ -936,6 +955,16 @@ class Daemon:
         self._interval_latencies = []
         log.info("%s", text)
         self.notifier.status(text[:200])
+
+
+def _uneven_steps(before: tuple[int, int], after: tuple[int, int]) -> bool:
+    """Are two consecutive steps between processed frames, each ``(index step, capture
+    µs)``, of different lengths: in source frames, or in time beyond
+    :data:`_UNEVEN_STEP_RATIO` (a camera whose indices count reads shows its drops only there)?"""
+    if before[0] != after[0]:
+        return True
+    short, long_ = sorted((before[1], after[1]))
+    return long_ > _UNEVEN_STEP_RATIO * short
 
 
 #: The link's other counters, (stats key, label): in the final line always, in the status

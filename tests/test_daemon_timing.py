@@ -184,3 +184,62 @@ def test_extra_values_are_unknown_without_a_cue_and_in_the_mounted_axes(tmp_path
         balances[mirror] = statistics.median(m.value for m in named if m.name == "balanceLR" and m.time_boot_ms >= 300)
     assert abs(balances[False]) > 0.05
     assert balances[True] == pytest.approx(balances[False], abs=0.05)
+
+
+class _DroppingSource:
+    """A real source that loses frames the way a camera under load does: every frame in
+    ``drop`` is read and thrown away (the next one comes two steps after the one before).
+    ``renumber``: the delivered indices count reads (as OpenCV's V4L2 reads do), so the
+    drop shows only in the timestamps. ``every``: deliver every n-th frame only."""
+
+    def __init__(self, inner, *, drop=(), renumber=False, every=1):
+        self.inner, self.drop, self.renumber, self.every, self.reads = inner, set(drop), renumber, every, 0
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def read(self):
+        from firmware_py.sources import Frame
+
+        for _ in range(self.every - 1):
+            self.inner.read()
+        frame = self.inner.read()
+        if frame is not None and frame.index in self.drop:
+            frame = self.inner.read()
+        self.reads += 1
+        if frame is not None and self.renumber:
+            frame = Frame(frame.image, frame.timestamp_us, frame.capture_host_us, self.reads - 1)
+        return frame
+
+
+@pytest.mark.parametrize("drop, renumber, every, uneven", [
+    ((30,), False, 1, 2),      # a dropped frame: the indices jump
+    ((30,), True, 1, 2),       # ... or only the timestamps (indices that count reads)
+    ((), False, 2, 0),         # a steady subset (every other frame) is even
+    ((), False, 1, 0),
+], ids=["dropped", "dropped-renumbered", "every-other", "none"])
+def test_a_dropped_frame_sends_the_two_frames_it_unevens_with_quality_0(tmp_path, drop, renumber, every, uneven):
+    """The velocity templates compare the motion over the last two steps between
+    processed frames. After a frame the camera dropped those differ for two frames (one
+    step of 1 and one of 2 frames), and the detector's output then is not the flow (the
+    audit saw 0.4x, then 1.9x the truth at quality 136): those two frames go out with
+    quality 0 and are counted as uneven; a steady subset's equal steps are not."""
+    log_path = tmp_path / "sent.csv"
+    config = _config("synthetic:u=2,v=1", autopilot="ardupilot",
+                     settings={("source", "width"): 96, ("source", "height"): 72,
+                               ("link", "message_rate_hz"): 100.0, ("link", "message_log"): str(log_path)})
+
+    def factory():
+        return _DroppingSource(make_source("synthetic:u=2,v=1", width=96, height=72, fps=100),
+                               drop=drop, renumber=renumber, every=every)
+
+    code, daemon, _ = run_daemon(config, frames=60, source_factory=factory)
+    assert code == 0
+    assert daemon.stats.uneven == uneven and daemon.stats.resets == 0
+    with open(log_path, newline="") as f:
+        quality = [int(r["quality"]) for r in csv.DictReader(f) if r["message"] == "OPTICAL_FLOW"]
+    # one report per processed frame; the paper's model needs 3 frames of history
+    assert len(quality) == 60, quality
+    zeros = [i for i, q in enumerate(quality) if q == 0 and i >= 3]
+    expected = [30, 31] if uneven else []
+    assert zeros == expected, quality

@@ -155,6 +155,7 @@ class DepthAISource(FrameSource):
         self._pipeline = None
         self._queue = None
         self._first = None  # the live camera's first frame, read by open()
+        self._playing = False  # a replay's pipeline started (at the first read)
         self._index = 0
         self._period_us = 1e6 / self.fps
 
@@ -195,8 +196,9 @@ class DepthAISource(FrameSource):
         return replay.out
 
     def _start(self, dai):
-        """Build and start the pipeline; returns (pipeline, output queue): a replay's is
-        a :class:`_ReplayFrames`."""
+        """Build the pipeline and start a live camera's; returns (pipeline, output queue):
+        a replay's is a :class:`_ReplayFrames`, and it starts at the first read
+        (:meth:`_play`)."""
         if self.live:
             pipeline = dai.Pipeline()  # connects to the first OAK found
             output = self._build_camera(dai, pipeline)
@@ -211,8 +213,20 @@ class DepthAISource(FrameSource):
             queue = _ReplayFrames(newest_only=self.realtime)
             # DepthAI's own queue only carries the callback: never blocking, never read
             output.createOutputQueue(maxSize=1, blocking=False).addCallback(queue.put)
+            return pipeline, queue
         pipeline.start()
         return pipeline, queue
+
+    def _play(self) -> None:
+        """Start a replay's pipeline: ReplayVideo plays the file from ``start()``, and the
+        daemon builds and warms up its engine between ``open()`` and the first read (seconds
+        on PoCL): started in ``open()``, a paced replay had played those seconds' frames to
+        a queue that keeps only the newest (a 4 s recording gave 1 frame)."""
+        try:
+            self._pipeline.start()
+        except Exception as exc:
+            raise SourceError(f"{self.uri}: cannot start the DepthAI pipeline: {exc}") from None
+        self._playing = True
 
     def open(self) -> None:
         self.close()
@@ -230,6 +244,7 @@ class DepthAISource(FrameSource):
             hint = " (is an OAK connected, and the udev rule for 03e7 installed?)" if self.live else ""
             raise SourceError(f"{self.uri}: cannot start the DepthAI pipeline: {exc}{hint}") from None
         self._index = 0
+        self._playing = self.live
         if self.live:
             # the crop the camera applies is known from its frames: wait for the first
             try:
@@ -258,6 +273,8 @@ class DepthAISource(FrameSource):
     def read(self) -> Frame | None:
         if self._queue is None:
             raise SourceError(f"{self.uri}: not open")
+        if not self._playing:
+            self._play()
         if self._first is not None:
             # the frame open() waited for, unless a newer one came meanwhile (the daemon
             # builds its engine between open and the first read: seconds on PoCL)
@@ -337,8 +354,9 @@ class DepthAISource(FrameSource):
             try:
                 if isinstance(self._queue, _ReplayFrames):
                     self._queue.stop()
-                self._pipeline.stop()
-                if not self.live:
+                if self._playing:  # (a replay not read from never started)
+                    self._pipeline.stop()
+                if self._playing and not self.live:
                     # the replay thread may be in our callback: let it leave (wait() lets go
                     # of the GIL) before the pipeline is dropped, whose destructor waits for
                     # that thread while holding the GIL the callback needs: a hang
@@ -348,6 +366,7 @@ class DepthAISource(FrameSource):
             self._pipeline = None
             self._queue = None
         self._first = None
+        self._playing = False
 
 
 def _timedelta(seconds: float):
