@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import sys
 import shutil
 import signal
@@ -58,8 +59,10 @@ def test_a_video_file_that_ends_stops_the_daemon_after_its_last_frame(tmp_path, 
     if threading == "single":                                   # one per frame of the file
         assert len(flows) == 12
         assert [m.quality > 0 for m in flows] == [False] * 3 + [True] * 9
-    else:  # (a capture thread may pass a subset of an unpaced file on a loaded machine)
-        assert 4 <= len(flows) <= 12 and flows[-1].quality > 0
+    else:  # (a capture thread may pass a subset of an unpaced file on a loaded machine,
+        # and a frame it passes over makes the next two uneven: sent with quality 0)
+        assert 4 <= len(flows) <= 12
+        assert flows[-1].quality > 0 or re.search(r"uneven [1-9]", err), [m.quality for m in flows]
 
 
 def test_a_recording_without_one_readable_frame_is_an_error(tmp_path):
