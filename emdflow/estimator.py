@@ -15,6 +15,8 @@ BACKENDS = ("opencl", "numpy")
 #: Largest frame (pixels): the kernels' 32-bit sums (the frame's brightness for the
 #: compensation, 255 per pixel; each counter copy's contrast sum) stay exact up to it.
 MAX_PIXELS = 1 << 24
+#: Widest frame (pixels): the OpenCL texture statistic's column arithmetic is 16-bit.
+MAX_WIDTH = 1 << 15
 
 #: A frame where at least this share of the finest receptors changed, and nearly all the
 #: same way (brightening share above 1 - POLARITY or below POLARITY), is a global
@@ -151,6 +153,9 @@ class FlowEstimator:
         if width * height > MAX_PIXELS:
             raise ValueError(f"frame size {width}x{height}: at most {MAX_PIXELS} pixels (e.g. 4096x4096) "
                              "are supported")
+        if width > MAX_WIDTH:
+            # (wider, OpenCL's texture and contrast counters read 0: a blind summary)
+            raise ValueError(f"frame size {width}x{height}: at most {MAX_WIDTH} px wide")
         if backend not in BACKENDS:
             raise ValueError(f"backend={backend!r}: expected one of {', '.join(BACKENDS)}")
         self.width, self.height, self.backend = int(width), int(height), backend

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from emdflow.params import MODELS, EngineParams
-from emdflow.reference import STAT_CONTRAST, ReferenceEngine, prefilter
+from emdflow.reference import STAT_CONTRAST, STAT_TEXTURED, ReferenceEngine, prefilter
 from emdflow.synthetic import CameraFlight
 
 opencl_backend = pytest.importorskip("emdflow.opencl_backend")
@@ -283,6 +283,28 @@ def test_very_wide_frames_sample_the_same_columns():
     flight = CameraFlight("brick", width=width, height=height, flow=(1.0, 0.0), noise_sigma=2, seed=2)
     frames = [flight.render(t) for t in range(5)]
     assert _compare(width, height, frames, params) > 0
+
+
+def test_the_widest_frame_counts_texture_as_the_reference_does():
+    """The texture statistic's column arithmetic is 16-bit in the kernel: at 32 768 px
+    wide (the limit) both backends count the same textured pixels and contrast sum (from
+    32 770 OpenCL counted none, and its summary was blind); one pixel wider is refused."""
+    import emdflow
+
+    width, height = emdflow.estimator.MAX_WIDTH, 8
+    params = EngineParams(scales=(1, 3), threshold_mode="adaptive")
+    rng = np.random.default_rng(0)
+    ground = rng.integers(0, 256, (height, width // 4 + 8), dtype=np.uint8).repeat(4, axis=1)
+    frames = [np.ascontiguousarray(ground[:, 2 * t:2 * t + width]) for t in range(4)]
+    ref = ReferenceEngine(width, height, params)
+    ocl = opencl_backend.OpenCLEngine(width, height, params)
+    for frame in frames:
+        stats_r, stats_o = ref.step(frame)[2], ocl.step(frame)[2]
+        assert np.array_equal(stats_r, stats_o), f"{stats_r} != {stats_o}"
+    assert stats_r[STAT_TEXTURED] > 0.5 * width * (height - 4) // 2
+    for backend in ("numpy", "opencl"):
+        with pytest.raises(ValueError, match=f"at most {width} px wide"):
+            emdflow.FlowEstimator(width + 1, height, backend=backend)
 
 
 def test_full_size_flight_and_reset():

@@ -84,12 +84,12 @@ def frame_size_problem(width: int, height: int, *, dis: bool, dis_role: str = ""
     """Why a ``width`` x ``height`` camera flight cannot be measured, or None.
 
     Both sides must be at least :data:`emdflow.synthetic.MIN_SIDE` px (the renderer's
-    smallest frame), the frame at most the engine's ``MAX_PIXELS``; with ``dis`` (OpenCV
+    smallest frame), the frame at most the engine's ``MAX_PIXELS`` and ``MAX_WIDTH``; with ``dis`` (OpenCV
     DIS runs on the frames) the longer side at least :data:`DIS_MIN_LONG_SIDE` px. The DIS
     message is ``"OpenCV DIS{dis_role} needs a side of at least {DIS_MIN_LONG_SIDE}
     px{dis_hint}"``; the caller puts the option in front.
     """
-    from emdflow.estimator import MAX_PIXELS
+    from emdflow.estimator import MAX_PIXELS, MAX_WIDTH
     from emdflow.synthetic import MIN_SIDE
 
     if min(width, height) < MIN_SIDE:
@@ -97,6 +97,8 @@ def frame_size_problem(width: int, height: int, *, dis: bool, dis_role: str = ""
     if width * height > MAX_PIXELS:
         # (known before minutes of rendering, not from the engine afterwards)
         return f"at most {MAX_PIXELS} pixels (the engine's limit, e.g. 4096x4096)"
+    if width > MAX_WIDTH:
+        return f"at most {MAX_WIDTH} px wide (the engine's limit)"
     if dis and max(width, height) < DIS_MIN_LONG_SIDE:
         return f"OpenCV DIS{dis_role} needs a side of at least {DIS_MIN_LONG_SIDE} px{dis_hint}"
     return None
