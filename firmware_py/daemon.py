@@ -533,8 +533,9 @@ class Daemon:
         self.exit_code = 0
         self.running = threading.Event()
         self._prev: Frame | None = None
-        #: (index step, capture µs) from the processed frame before ``_prev`` to it, or None
-        self._prev_step: tuple[int, int] | None = None
+        #: (index step, capture µs) between the processed frames the detector's templates
+        #: span now (the last 3 x the longest delay steps; emptied at a reset)
+        self._steps: deque[tuple[int, int]] = deque(maxlen=3)
         self._processed_intervals = RecentIntervals()  # capture µs between processed frames
         self._last_frame_host_s = time.monotonic()
         self._blind_logged = False
@@ -670,6 +671,10 @@ class Daemon:
             keeper = self._start_source()
             t0 = time.monotonic()
             self.estimator = self._estimator_factory(self.width, self.height)
+            # the steps the templates span: 3 x the longest delay (an engine stand-in
+            # without parameters, in tests, is the paper's model)
+            params = getattr(self.estimator, "params", None)
+            self._steps = deque(maxlen=getattr(params, "history_frames", 3))
             self._warm_up(t0)
             self.link = self._link_factory(self.focal_length_px)
             if hasattr(self.link, "blind_after_s"):
@@ -814,16 +819,19 @@ class Daemon:
                          (frame.timestamp_us - prev.timestamp_us) / 1e6, frame.index, prev.index)
         if prev is not None:  # after the gap test: a stall must not widen its own threshold
             self._processed_intervals.add(frame.timestamp_us - prev.timestamp_us)
-        # The velocity templates compare the motion of the last two steps between processed
-        # frames (A->B over one, B->C over the next): after a frame the camera or a paced file
-        # dropped, or a change of the steady subset, those two steps differ for this frame
-        # and the next, and what the detector reports then is not the flow (too little, or
-        # twice it, at a fair quality). Sent with quality 0; the state is kept (a reset
-        # would blind the extended model for 12 frames).
-        # (no step to compare across a reset: the history refills)
-        step = None if prev is None or reset else (frame.index - prev.index, frame.timestamp_us - prev.timestamp_us)
-        uneven = step is not None and self._prev_step is not None and _uneven_steps(self._prev_step, step)
-        self._prev_step = step
+        # A channel of delay D compares the changes R(t-D) - R(t-2D) and R(t) - R(t-D) with
+        # those a frame-step earlier (its templates read the states at t-2D, t-D and t):
+        # its output spans the frames t-3D..t, and assumes they are evenly spaced. After a
+        # frame the camera or a paced file dropped, or a change of the steady subset, the
+        # steps in that span differ, and what the detector reports is not the flow (the
+        # paper's model 1.2-1.7x the truth on the third frame after a drop, at its usual
+        # quality). Those frames are sent with quality 0 (3 of the paper's model, 12 of
+        # the extended one's); the state is kept (a reset blinds as long, and longer).
+        if reset:
+            self._steps.clear()  # (no step to compare across a reset: the history refills)
+        elif prev is not None:
+            self._steps.append((frame.index - prev.index, frame.timestamp_us - prev.timestamp_us))
+        uneven = _uneven_steps(self._steps)
         if self._blind_logged:
             log.info("source delivering again")
             self._blind_logged = False
@@ -933,7 +941,8 @@ class Daemon:
             t = self.stats.totals()
             return (f"total: in {t['frames_in']} processed {t['processed']} skipped {t['skipped']} "
                     f"dropped {t['dropped']} bad {t['bad_frames']} resets {t['resets']} "
-                    f"reopens {t['reopens']} blind {t['blind_periods']} uneven {t['uneven']} | link {_link_stats(st, final=True)} | "
+                    f"reopens {t['reopens']} blind {t['blind_periods']} uneven {t['uneven']} | "
+                    f"link {_link_stats(st, final=True)} | "
                     f"latency capture->serial p50 {lat50 / 1000:.2f} ms p99 {lat99 / 1000:.2f} ms "
                     f"(n={len(self.latencies_us)})")
         rate = iv["processed"] / period_s if period_s else 0.0
@@ -957,14 +966,16 @@ class Daemon:
         self.notifier.status(text[:200])
 
 
-def _uneven_steps(before: tuple[int, int], after: tuple[int, int]) -> bool:
-    """Are two consecutive steps between processed frames, each ``(index step, capture
-    µs)``, of different lengths: in source frames, or in time beyond
-    :data:`_UNEVEN_STEP_RATIO` (a camera whose indices count reads shows its drops only there)?"""
-    if before[0] != after[0]:
+def _uneven_steps(steps) -> bool:
+    """Are the steps between processed frames, each ``(index step, capture µs)``, of
+    different lengths: in source frames, or in time beyond :data:`_UNEVEN_STEP_RATIO` (a
+    camera whose indices count reads shows its drops only there)?"""
+    if len(steps) < 2:
+        return False
+    if len({index_step for index_step, _ in steps}) > 1:
         return True
-    short, long_ = sorted((before[1], after[1]))
-    return long_ > _UNEVEN_STEP_RATIO * short
+    times = [us for _, us in steps]
+    return max(times) > _UNEVEN_STEP_RATIO * min(times)
 
 
 #: The link's other counters, (stats key, label): in the final line always, in the status

@@ -212,20 +212,23 @@ class _DroppingSource:
         return frame
 
 
-@pytest.mark.parametrize("drop, renumber, every, uneven", [
-    ((30,), False, 1, 2),      # a dropped frame: the indices jump
-    ((30,), True, 1, 2),       # ... or only the timestamps (indices that count reads)
-    ((), False, 2, 0),         # a steady subset (every other frame) is even
-    ((), False, 1, 0),
-], ids=["dropped", "dropped-renumbered", "every-other", "none"])
-def test_a_dropped_frame_sends_the_two_frames_it_unevens_with_quality_0(tmp_path, drop, renumber, every, uneven):
-    """The velocity templates compare the motion over the last two steps between
-    processed frames. After a frame the camera dropped those differ for two frames (one
-    step of 1 and one of 2 frames), and the detector's output then is not the flow (the
-    audit saw 0.4x, then 1.9x the truth at quality 136): those two frames go out with
-    quality 0 and are counted as uneven; a steady subset's equal steps are not."""
+@pytest.mark.parametrize("drop, renumber, every, model, uneven", [
+    ((30,), False, 1, "paper", 3),       # a dropped frame: the indices jump
+    ((30,), True, 1, "paper", 3),        # ... or only the timestamps (indices that count reads)
+    ((30,), False, 1, "extended", 12),   # delays up to 4: frames t-12..t
+    ((), False, 2, "paper", 0),          # a steady subset (every other frame) is even
+    ((), False, 1, "paper", 0),
+], ids=["dropped", "dropped-renumbered", "dropped-extended", "every-other", "none"])
+def test_a_dropped_frame_sends_the_frames_it_unevens_with_quality_0(tmp_path, drop, renumber, every, model,
+                                                                    uneven):
+    """The paper model's output at frame t spans the frames t-3..t (templates over the
+    states at t-2, t-1 and t, each a change from the frame before). After a frame the
+    camera dropped, three frames span a step of 2 frames among steps of 1, and the
+    detector's output then is not the flow (audits saw 0.4x, 1.9x, then 1.35x the truth, at
+    the usual quality): those three go out with quality 0 and are counted as uneven; a
+    steady subset's equal steps are not."""
     log_path = tmp_path / "sent.csv"
-    config = _config("synthetic:u=2,v=1", autopilot="ardupilot",
+    config = _config("synthetic:u=2,v=1", autopilot="ardupilot", model=model,
                      settings={("source", "width"): 96, ("source", "height"): 72,
                                ("link", "message_rate_hz"): 100.0, ("link", "message_log"): str(log_path)})
 
@@ -240,6 +243,6 @@ def test_a_dropped_frame_sends_the_two_frames_it_unevens_with_quality_0(tmp_path
         quality = [int(r["quality"]) for r in csv.DictReader(f) if r["message"] == "OPTICAL_FLOW"]
     # one report per processed frame; the paper's model needs 3 frames of history
     assert len(quality) == 60, quality
-    zeros = [i for i, q in enumerate(quality) if q == 0 and i >= 3]
-    expected = [30, 31] if uneven else []
-    assert zeros == expected, quality
+    history = 3 if model == "paper" else 12  # frames before the first flow
+    zeros = [i for i, q in enumerate(quality) if q == 0 and i >= history]
+    assert zeros == list(range(30, 30 + uneven)), quality  # the frames whose templates span the drop
