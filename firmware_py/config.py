@@ -18,7 +18,13 @@ from emdflow.params import MODELS
 from .links.base import AUTOPILOT_PROTOCOLS, MIN_MESSAGE_RATE_HZ, MIN_RATE_REASON
 
 __all__ = ["Config", "SourceConfig", "OpticsConfig", "EngineConfig", "LinkConfigSection",
-           "DaemonConfig", "ConfigError", "load_config", "SECTIONS"]
+           "DaemonConfig", "ConfigError", "load_config", "SECTIONS", "ARDUPILOT_MIN_QUALITY"]
+
+#: The default ``[link] min_quality`` for ArduPilot, per model: the lowest quality band in
+#: which the summary's error is still that of the better bands (the extended model's 1-63
+#: band reads 10 % median, 24 % 90th percentile, against 5-7 % and 11-14 % above it; the
+#: paper model's 64-127 band 11.5 % and 57 %): README, "Thresholds".
+ARDUPILOT_MIN_QUALITY = {"extended": 64, "paper": 128}
 
 
 class ConfigError(ValueError):
@@ -115,6 +121,10 @@ class LinkConfigSection:
                                            why="0 m would go out as a real reading; leave it unset for unknown")
     message_log: str | None = _opt(None, doc="CSV / JSON-lines log of sent messages")
     extra_values: bool = _opt(False, doc="send extra named values")
+    # ArduPilot's EKF3 fuses every report of quality > 0 (it has no quality threshold):
+    # below this the daemon sends quality 0. Empty: 64 (extended model) or 128 (paper's)
+    # for ArduPilot, 0 for PX4 and INAV, which apply their own (EKF2_OF_QMIN, 35 %)
+    min_quality: int | None = _opt(None, minimum=0, maximum=255, doc="lowest quality sent as is")
     # must equal INAV's opflow_scale, or INAV's rates come out scaled by the ratio
     msp_counts_per_degree: float = _opt(10.5, minimum=0.1, maximum=1000.0,
                                         doc="MSP motion counts per degree of angular flow")
@@ -166,6 +176,16 @@ class Config:
         if (section, key) == ("source", "uri"):
             _check_uri(value, where)
         setattr(obj, key, value)
+
+    def min_quality(self) -> int:
+        """The lowest frame quality sent as it is (below: 0): ``[link] min_quality``, else
+        for ArduPilot (EKF3 fuses any quality > 0) the model's band floor where the
+        summary's error grows (README, "Thresholds"), else 0."""
+        if self.link.min_quality is not None:
+            return self.link.min_quality
+        if self.link_autopilot() in ("ardupilot", "both"):
+            return ARDUPILOT_MIN_QUALITY.get(self.engine.model, 0)
+        return 0
 
     def link_autopilot(self) -> str:
         """The autopilot whose message set to send: the configured one, else from the

@@ -536,6 +536,8 @@ class Daemon:
         #: (index step, capture µs) between the processed frames the detector's templates
         #: span now (the last 3 x the longest delay steps; emptied at a reset)
         self._steps: deque[tuple[int, int]] = deque(maxlen=3)
+        #: frame quality below which the link gets 0 (Config.min_quality; set by run())
+        self.min_quality = 0
         self._processed_intervals = RecentIntervals()  # capture µs between processed frames
         self._last_frame_host_s = time.monotonic()
         self._blind_logged = False
@@ -691,6 +693,11 @@ class Daemon:
                      self.config.source.uri, self.width, self.height, self.fps, self.focal_length_px,
                      self.config.engine.backend, self.config.link_autopilot(), self.config.link.port,
                      self.config.link.baud, self.mode)
+            self.min_quality = self.config.min_quality()
+            if self.min_quality:
+                log.info("frames of quality below %d are sent with quality 0 ([link] min_quality%s)",
+                         self.min_quality, "" if self.config.link.min_quality is not None
+                         else f": the default for {self.config.link_autopilot()} with the {self.config.engine.model} model")
             self._warn_of_a_wide_lens()
             if self.mode == "capture-thread":
                 # Files read as fast as possible get back-pressure instead of drops.
@@ -859,9 +866,11 @@ class Daemon:
                       *zip(("balanceLR", "balanceTB"), self._mounted_balance(cues)))
         if uneven:
             self.stats.uneven += 1
+        # (below the floor: ArduPilot's EKF3 would fuse what the summary itself doubts)
+        quality = 0 if uneven or summary.quality < self.min_quality else summary.quality
         self.link.submit(FlowSample(timestamp_us=frame.timestamp_us, capture_host_us=frame.capture_host_us,
-                                    flow_x=summary.flow_x, flow_y=summary.flow_y,
-                                    quality=0 if uneven else summary.quality, extras=extras), now_host_us=t2)
+                                    flow_x=summary.flow_x, flow_y=summary.flow_y, quality=quality,
+                                    extras=extras), now_host_us=t2)
         t3 = host_us()
         self.stats.stage("engine", t1 - t0)
         self.stats.stage("summary", t2 - t1)

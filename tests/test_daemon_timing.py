@@ -230,7 +230,8 @@ def test_a_dropped_frame_sends_the_frames_it_unevens_with_quality_0(tmp_path, dr
     log_path = tmp_path / "sent.csv"
     config = _config("synthetic:u=2,v=1", autopilot="ardupilot", model=model,
                      settings={("source", "width"): 96, ("source", "height"): 72,
-                               ("link", "message_rate_hz"): 100.0, ("link", "message_log"): str(log_path)})
+                               ("link", "message_rate_hz"): 100.0, ("link", "message_log"): str(log_path),
+                               ("link", "min_quality"): 0})
 
     def factory():
         return _DroppingSource(make_source("synthetic:u=2,v=1", width=96, height=72, fps=100),
@@ -246,3 +247,43 @@ def test_a_dropped_frame_sends_the_frames_it_unevens_with_quality_0(tmp_path, dr
     history = 3 if model == "paper" else 12  # frames before the first flow
     zeros = [i for i, q in enumerate(quality) if q == 0 and i >= history]
     assert zeros == list(range(30, 30 + uneven)), quality  # the frames whose templates span the drop
+
+
+@pytest.mark.parametrize("autopilot, setting, floor", [
+    ("ardupilot", None, 128),    # the paper model's default for ArduPilot
+    ("px4", None, 0),            # PX4 has EKF2_OF_QMIN
+    ("ardupilot", 30, 30),
+])
+def test_ardupilot_gets_quality_0_below_the_models_floor(tmp_path, monkeypatch, autopilot, setting, floor):
+    """ArduPilot's EKF3 fuses every report of quality > 0. A summary the engine itself
+    rates low (too fast for the scales, noise only: 10-50 % off, or the wrong sign) went
+    out to it as a measurement; below the model's floor it is sent with quality 0."""
+    import firmware_py.daemon as daemon_module
+    from emdflow.summary import FlowSummary
+
+    # summaries of qualities 20, 60, 140, 200 in turn, one report per frame
+    real = daemon_module._summarize
+    qualities = iter([20, 60, 140, 200] * 30)
+
+    def rated(field):
+        summary = real(field)
+        return FlowSummary(flow_x=summary.flow_x, flow_y=summary.flow_y, quality=next(qualities))
+
+    monkeypatch.setattr(daemon_module, "_summarize", rated)
+    log_path = tmp_path / "sent.csv"
+    settings = {("source", "width"): 96, ("source", "height"): 72, ("link", "message_rate_hz"): 100.0,
+                ("link", "message_log"): str(log_path)}
+    if setting is not None:
+        settings[("link", "min_quality")] = setting
+    config = _config("synthetic:u=2,v=1", autopilot=autopilot, settings=settings)
+    code, daemon, _ = run_daemon(config, frames=40, source_factory=lambda: make_source(
+        "synthetic:u=2,v=1", width=96, height=72, fps=100))
+    assert code == 0 and daemon.min_quality == floor
+    message = "OPTICAL_FLOW" if autopilot == "ardupilot" else "OPTICAL_FLOW_RAD"
+    with open(log_path, newline="") as f:
+        sent = [int(r["quality"]) for r in csv.DictReader(f) if r["message"] == message]
+    late = sent[8:]  # (the first frames, history filling, are quality 0 whatever the summary says)
+    if autopilot == "ardupilot":  # one report per frame
+        assert set(late) == {0} | {q for q in (20, 60, 140, 200) if q >= floor}, sent
+    else:  # (PX4's reports span two frames: their mean quality)
+        assert min(late) > 0 and min(late) < 128, sent
