@@ -84,8 +84,9 @@ def frame_size_problem(width: int, height: int, *, dis: bool, dis_role: str = ""
     """Why a ``width`` x ``height`` camera flight cannot be measured, or None.
 
     Both sides must be at least :data:`emdflow.synthetic.MIN_SIDE` px (the renderer's
-    smallest frame), the frame at most the engine's ``MAX_PIXELS`` and ``MAX_WIDTH``; with ``dis`` (OpenCV
-    DIS runs on the frames) the longer side at least :data:`DIS_MIN_LONG_SIDE` px. The DIS
+    smallest frame), the frame at most the engine's ``MAX_PIXELS`` and ``MAX_WIDTH``; with
+    ``dis`` (OpenCV DIS runs on the frames) the longer side at least
+    :data:`DIS_MIN_LONG_SIDE` px. The DIS
     message is ``"OpenCV DIS{dis_role} needs a side of at least {DIS_MIN_LONG_SIDE}
     px{dis_hint}"``; the caller puts the option in front.
     """
