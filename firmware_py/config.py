@@ -123,7 +123,8 @@ class LinkConfigSection:
     extra_values: bool = _opt(False, doc="send extra named values")
     # ArduPilot's EKF3 fuses every report of quality > 0 (it has no quality threshold):
     # below this the daemon sends quality 0. Empty: 64 (extended model) or 128 (paper's)
-    # for ArduPilot, 0 for PX4 and INAV, which apply their own (EKF2_OF_QMIN, 35 %)
+    # for ArduPilot and for both (whose OPTICAL_FLOW ArduPilot reads), 0 for PX4 and INAV,
+    # which apply their own (EKF2_OF_QMIN, 35 %)
     min_quality: int | None = _opt(None, minimum=0, maximum=255, doc="lowest quality sent as is")
     # must equal INAV's opflow_scale, or INAV's rates come out scaled by the ratio
     msp_counts_per_degree: float = _opt(10.5, minimum=0.1, maximum=1000.0,

@@ -58,9 +58,11 @@ _GAP_INTERVALS = 3.0
 # its reopen back-off start again from the first delay (one frame and a failure is no
 # recovery; the extended model needs 12 frames before its first flow).
 _STEADY_S = 5.0
-# Two steps between processed frames whose capture times differ by more than this ratio are
-# uneven (one frame a camera dropped doubles a step; timestamps jitter far less than that).
-_UNEVEN_STEP_RATIO = 1.4
+# Frames after an uneven step sent with quality 0, at most (see Daemon._process): the span
+# of the delay-1 and delay-2 channels, where audits measured the error (the extended
+# model's delay-4 channels stay off by 10-16 % a few frames longer, at slow speeds, but 12
+# blank frames are 200 ms at 60 fps: EKF3 and INAV stop using flow after that).
+_UNEVEN_FRAMES_MAX = 6
 
 
 def choose_threading(setting: str, *, live: bool) -> str:
@@ -535,7 +537,11 @@ class Daemon:
         self._prev: Frame | None = None
         #: (index step, capture µs) between the processed frames the detector's templates
         #: span now (the last 3 x the longest delay steps; emptied at a reset)
+        #: the steps between the processed frames the detector's output spans now (index
+        #: step, capture-time step in source frame periods); its length is set by run()
         self._steps: deque[tuple[int, int]] = deque(maxlen=3)
+        #: recent capture µs per source frame (step over index step): their mean is the period
+        self._periods_us: deque[float] = deque(maxlen=8)
         #: frame quality below which the link gets 0 (Config.min_quality; set by run())
         self.min_quality = 0
         self._processed_intervals = RecentIntervals()  # capture µs between processed frames
@@ -673,10 +679,10 @@ class Daemon:
             keeper = self._start_source()
             t0 = time.monotonic()
             self.estimator = self._estimator_factory(self.width, self.height)
-            # the steps the templates span: 3 x the longest delay (an engine stand-in
-            # without parameters, in tests, is the paper's model)
+            # the frames an uneven step spoils: 3 x the longest delay (an engine stand-in
+            # without parameters, in tests, is the paper's model), at most _UNEVEN_FRAMES_MAX
             params = getattr(self.estimator, "params", None)
-            self._steps = deque(maxlen=getattr(params, "history_frames", 3))
+            self._steps = deque(maxlen=min(getattr(params, "history_frames", 3), _UNEVEN_FRAMES_MAX))
             self._warm_up(t0)
             self.link = self._link_factory(self.focal_length_px)
             if hasattr(self.link, "blind_after_s"):
@@ -695,9 +701,10 @@ class Daemon:
                      self.config.link.baud, self.mode)
             self.min_quality = self.config.min_quality()
             if self.min_quality:
+                why = ("" if self.config.link.min_quality is not None else
+                       f": the default for {self.config.link_autopilot()} with the {self.config.engine.model} model")
                 log.info("frames of quality below %d are sent with quality 0 ([link] min_quality%s)",
-                         self.min_quality, "" if self.config.link.min_quality is not None
-                         else f": the default for {self.config.link_autopilot()} with the {self.config.engine.model} model")
+                         self.min_quality, why)
             self._warn_of_a_wide_lens()
             if self.mode == "capture-thread":
                 # Files read as fast as possible get back-pressure instead of drops.
@@ -827,18 +834,25 @@ class Daemon:
         if prev is not None:  # after the gap test: a stall must not widen its own threshold
             self._processed_intervals.add(frame.timestamp_us - prev.timestamp_us)
         # A channel of delay D compares the changes R(t-D) - R(t-2D) and R(t) - R(t-D) with
-        # those a frame-step earlier (its templates read the states at t-2D, t-D and t):
-        # its output spans the frames t-3D..t, and assumes they are evenly spaced. After a
-        # frame the camera or a paced file dropped, or a change of the steady subset, the
-        # steps in that span differ, and what the detector reports is not the flow (the
-        # paper's model 1.2-1.7x the truth on the third frame after a drop, at its usual
-        # quality). Those frames are sent with quality 0 (3 of the paper's model, 12 of
-        # the extended one's); the state is kept (a reset blinds as long, and longer).
+        # those a frame-step earlier (its templates read the states at t-2D, t-D and t): its
+        # output spans the frames t-3D..t, and assumes them evenly spaced. After a frame the
+        # camera or a paced file dropped, or a change of the steady subset, what the detector
+        # reports is not the flow (too little, then too much) at its usual quality: the
+        # frames whose span holds unequal steps (3 of the paper's model, up to
+        # _UNEVEN_FRAMES_MAX of the extended one's) are sent with quality 0. The state is
+        # kept (a reset blinds as long, and longer). Steps are counted in source frames:
+        # index steps, and capture-time steps in source periods (a V4L2 camera's indices
+        # count reads: its drops show only in the timestamps), the period measured from the
+        # recent steps (not the nominal fps, which a camera may not keep); rounding absorbs
+        # jitter.
         if reset:
             self._steps.clear()  # (no step to compare across a reset: the history refills)
         elif prev is not None:
-            self._steps.append((frame.index - prev.index, frame.timestamp_us - prev.timestamp_us))
-        uneven = _uneven_steps(self._steps)
+            index_step, dt = frame.index - prev.index, frame.timestamp_us - prev.timestamp_us
+            self._periods_us.append(dt / index_step)
+            period_us = sum(self._periods_us) / len(self._periods_us)  # (a mean: jitter alternates)
+            self._steps.append((index_step, round(dt / period_us)))
+        uneven = len(set(self._steps)) > 1
         if self._blind_logged:
             log.info("source delivering again")
             self._blind_logged = False
@@ -864,7 +878,7 @@ class Daemon:
             extras = (("expansion", cues.expansion_rate / frame_s),  # 1/s
                       ("ttc_s", ttc_s if math.isfinite(ttc_s) else -1.0),
                       *zip(("balanceLR", "balanceTB"), self._mounted_balance(cues)))
-        if uneven:
+        if uneven and field.ready:  # (before, the history filling sends quality 0 anyway)
             self.stats.uneven += 1
         # (below the floor: ArduPilot's EKF3 would fuse what the summary itself doubts)
         quality = 0 if uneven or summary.quality < self.min_quality else summary.quality
@@ -973,18 +987,6 @@ class Daemon:
         self._interval_latencies = []
         log.info("%s", text)
         self.notifier.status(text[:200])
-
-
-def _uneven_steps(steps) -> bool:
-    """Are the steps between processed frames, each ``(index step, capture µs)``, of
-    different lengths: in source frames, or in time beyond :data:`_UNEVEN_STEP_RATIO` (a
-    camera whose indices count reads shows its drops only there)?"""
-    if len(steps) < 2:
-        return False
-    if len({index_step for index_step, _ in steps}) > 1:
-        return True
-    times = [us for _, us in steps]
-    return max(times) > _UNEVEN_STEP_RATIO * min(times)
 
 
 #: The link's other counters, (stats key, label): in the final line always, in the status

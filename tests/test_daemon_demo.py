@@ -25,7 +25,7 @@ def test_demo_prints_live_telemetry_and_a_summary(tmp_path):
     # a row: time, frames/s, msgs/s, heartbeats, latency p50 / p99, flow rate x,y, truth x,y, quality
     fields = re.findall(r"[-+]?\d+\.?\d*", rows[-1])
     assert int(fields[1]) > 0 and int(fields[2]) > 0
-    # (the quality of the row's last message: 0 for the two after a frame the paced flight
+    # (the quality of the row's last message: 0 for the six after a frame the paced flight
     # skipped on a loaded machine, "uneven")
     assert any(int(re.findall(r"[-+]?\d+\.?\d*", row)[-1]) > 0 for row in rows), rows
     summary = lines[-1]

@@ -60,7 +60,7 @@ def test_a_video_file_that_ends_stops_the_daemon_after_its_last_frame(tmp_path, 
         assert len(flows) == 12
         assert [m.quality > 0 for m in flows] == [False] * 3 + [True] * 9
     else:  # (a capture thread may pass a subset of an unpaced file on a loaded machine,
-        # and a frame it passes over makes the next two uneven: sent with quality 0)
+        # and a frame it passes over makes the next three uneven: sent with quality 0)
         assert 4 <= len(flows) <= 12
         assert flows[-1].quality > 0 or re.search(r"uneven [1-9]", err), [m.quality for m in flows]
 

@@ -3,6 +3,7 @@ synthetic flights, V4L2 raw-buffer conversion (the camera itself is the only moc
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import re
@@ -316,8 +317,38 @@ def test_a_paced_depthai_replay_starts_playing_at_its_first_read(request, tmp_pa
             got.append(frame.index)
     finally:
         source.close()
-    # (under load the pipeline has lost a few frames as it started: see above)
+    # (under load the pipeline has lost a few frames as it started: see
+    # test_depthai_replay_same_frames_as_file)
     assert len(got) >= 32 and got == sorted(got), got
+
+
+def test_a_depthai_replay_that_cannot_start_has_ended(request, tmp_path, caplog):
+    """Started at the first read, a replay whose pipeline cannot start reads as the end
+    of the file (the daemon stops: exit 2 before any frame), as a file that cannot be
+    opened, not as a camera lost for a while (reopened for ever)."""
+    pytest.importorskip("depthai")
+    if not run_isolated_from_native_crashes(request, timeout=60.0):
+        return
+
+    class _NoStart:
+        def __init__(self, pipeline):
+            self.pipeline = pipeline
+
+        def start(self):
+            raise RuntimeError("cannot start")
+
+        def __getattr__(self, name):
+            return getattr(self.pipeline, name)
+
+    path = write_video(tmp_path / "clip.mkv", flight_frames(10, width=64, height=48), fps=50.0)
+    source = open_source(f"depthai-replay:{path}", realtime=True)
+    try:
+        source._pipeline = _NoStart(source._pipeline)
+        with caplog.at_level(logging.ERROR):
+            assert source.read() is None
+    finally:
+        source.close()
+    assert "cannot start the DepthAI pipeline: cannot start" in caplog.text
 
 
 @pytest.mark.parametrize("size", [(80, 60), (320, 240)], ids=["down", "up"])

@@ -188,45 +188,56 @@ def test_extra_values_are_unknown_without_a_cue_and_in_the_mounted_axes(tmp_path
 
 class _DroppingSource:
     """A real source that loses frames the way a camera under load does: every frame in
-    ``drop`` is read and thrown away (the next one comes two steps after the one before).
-    ``renumber``: the delivered indices count reads (as OpenCV's V4L2 reads do), so the
-    drop shows only in the timestamps. ``every``: deliver every n-th frame only."""
+    ``drop`` is read and thrown away (the next one comes two periods after the one before).
+    ``renumber``: the indices count the frames that came (as OpenCV's V4L2 reads do), so the
+    drop shows only in the timestamps. ``jitter_us``: timestamps alternately that much late
+    and on time (a driver without buffer times, stamped at the host's read). ``every``:
+    deliver every n-th of those frames only (a subset, as the capture thread's)."""
 
-    def __init__(self, inner, *, drop=(), renumber=False, every=1):
-        self.inner, self.drop, self.renumber, self.every, self.reads = inner, set(drop), renumber, every, 0
+    def __init__(self, inner, *, drop=(), renumber=False, every=1, jitter_us=0):
+        self.inner, self.drop, self.renumber, self.every, self.jitter_us = inner, set(drop), renumber, every, jitter_us
+        self.came = 0
 
     def __getattr__(self, name):
         return getattr(self.inner, name)
 
-    def read(self):
+    def _next(self):
         from firmware_py.sources import Frame
 
-        for _ in range(self.every - 1):
-            self.inner.read()
         frame = self.inner.read()
         if frame is not None and frame.index in self.drop:
             frame = self.inner.read()
-        self.reads += 1
-        if frame is not None and self.renumber:
-            frame = Frame(frame.image, frame.timestamp_us, frame.capture_host_us, self.reads - 1)
-        return frame
+        if frame is None:
+            return None
+        self.came += 1
+        index = self.came - 1 if self.renumber else frame.index
+        return Frame(frame.image, frame.timestamp_us + self.jitter_us * (self.came % 2), frame.capture_host_us,
+                     index)
+
+    def read(self):
+        for _ in range(self.every - 1):
+            self._next()
+        return self._next()
 
 
-@pytest.mark.parametrize("drop, renumber, every, model, uneven", [
-    ((30,), False, 1, "paper", 3),       # a dropped frame: the indices jump
-    ((30,), True, 1, "paper", 3),        # ... or only the timestamps (indices that count reads)
-    ((30,), False, 1, "extended", 12),   # delays up to 4: frames t-12..t
-    ((), False, 2, "paper", 0),          # a steady subset (every other frame) is even
-    ((), False, 1, "paper", 0),
-], ids=["dropped", "dropped-renumbered", "dropped-extended", "every-other", "none"])
-def test_a_dropped_frame_sends_the_frames_it_unevens_with_quality_0(tmp_path, drop, renumber, every, model,
-                                                                    uneven):
+@pytest.mark.parametrize("drop, renumber, every, jitter_us, model, uneven", [
+    ((30,), False, 1, 0, "paper", 3),       # a dropped frame: the indices jump
+    ((30,), True, 1, 0, "paper", 3),        # ... or only the timestamps (indices that count reads)
+    ((91,), True, 3, 0, "paper", 3),        # ... also in a subset of every 3rd frame (40 ms after 30)
+    ((30,), False, 1, 0, "extended", 6),    # delays up to 4, but at most 6 frames
+    ((), False, 2, 0, "paper", 0),          # a steady subset (every other frame) is even
+    ((), True, 1, 3000, "paper", 0),        # 13 and 7 ms steps at 100 fps: jitter, not a drop
+    ((), False, 1, 0, "paper", 0),
+], ids=["dropped", "dropped-renumbered", "dropped-renumbered-every-3rd", "dropped-extended", "every-other",
+        "jitter", "none"])
+def test_a_dropped_frame_sends_the_frames_it_unevens_with_quality_0(tmp_path, drop, renumber, every, jitter_us,
+                                                                    model, uneven):
     """The paper model's output at frame t spans the frames t-3..t (templates over the
     states at t-2, t-1 and t, each a change from the frame before). After a frame the
-    camera dropped, three frames span a step of 2 frames among steps of 1, and the
-    detector's output then is not the flow (audits saw 0.4x, 1.9x, then 1.35x the truth, at
-    the usual quality): those three go out with quality 0 and are counted as uneven; a
-    steady subset's equal steps are not."""
+    camera dropped, three frames span a longer step among the others, and the detector's
+    output then is not the flow, at the usual quality: those three go out with quality 0
+    and are counted as uneven (the extended model's six: its span, at most 6). A steady
+    subset's equal steps are not uneven, nor a timestamp jitter of a third of a period."""
     log_path = tmp_path / "sent.csv"
     config = _config("synthetic:u=2,v=1", autopilot="ardupilot", model=model,
                      settings={("source", "width"): 96, ("source", "height"): 72,
@@ -235,35 +246,38 @@ def test_a_dropped_frame_sends_the_frames_it_unevens_with_quality_0(tmp_path, dr
 
     def factory():
         return _DroppingSource(make_source("synthetic:u=2,v=1", width=96, height=72, fps=100),
-                               drop=drop, renumber=renumber, every=every)
+                               drop=drop, renumber=renumber, every=every, jitter_us=jitter_us)
 
     code, daemon, _ = run_daemon(config, frames=60, source_factory=factory)
     assert code == 0
     assert daemon.stats.uneven == uneven and daemon.stats.resets == 0
     with open(log_path, newline="") as f:
         quality = [int(r["quality"]) for r in csv.DictReader(f) if r["message"] == "OPTICAL_FLOW"]
-    # one report per processed frame; the paper's model needs 3 frames of history
-    assert len(quality) == 60, quality
+    # one report per processed frame (jittered, a 7 ms step is shorter than the period:
+    # two frames to a report)
+    assert len(quality) == (60 if not jitter_us else 30), quality
     history = 3 if model == "paper" else 12  # frames before the first flow
+    history = -(-history // 2) if jitter_us else history  # (reports before it)
     zeros = [i for i, q in enumerate(quality) if q == 0 and i >= history]
     assert zeros == list(range(30, 30 + uneven)), quality  # the frames whose templates span the drop
 
 
-@pytest.mark.parametrize("autopilot, setting, floor", [
-    ("ardupilot", None, 128),    # the paper model's default for ArduPilot
-    ("px4", None, 0),            # PX4 has EKF2_OF_QMIN
-    ("ardupilot", 30, 30),
+@pytest.mark.parametrize("autopilot, model, setting, floor", [
+    ("ardupilot", "paper", None, 128),    # the paper model's default for ArduPilot
+    ("both", "extended", None, 64),       # the extended model's (both: ArduPilot reads OPTICAL_FLOW)
+    ("px4", "paper", None, 0),            # PX4 has EKF2_OF_QMIN
+    ("ardupilot", "paper", 30, 30),
 ])
-def test_ardupilot_gets_quality_0_below_the_models_floor(tmp_path, monkeypatch, autopilot, setting, floor):
+def test_ardupilot_gets_quality_0_below_the_models_floor(tmp_path, monkeypatch, autopilot, model, setting, floor):
     """ArduPilot's EKF3 fuses every report of quality > 0. A summary the engine itself
     rates low (too fast for the scales, noise only: 10-50 % off, or the wrong sign) went
     out to it as a measurement; below the model's floor it is sent with quality 0."""
     import firmware_py.daemon as daemon_module
     from emdflow.summary import FlowSummary
 
-    # summaries of qualities 20, 60, 140, 200 in turn, one report per frame
+    # summaries of qualities 20, 100, 200, four frames each in turn
     real = daemon_module._summarize
-    qualities = iter([20, 60, 140, 200] * 30)
+    qualities = iter(([20] * 4 + [100] * 4 + [200] * 4) * 10)
 
     def rated(field):
         summary = real(field)
@@ -275,15 +289,18 @@ def test_ardupilot_gets_quality_0_below_the_models_floor(tmp_path, monkeypatch, 
                 ("link", "message_log"): str(log_path)}
     if setting is not None:
         settings[("link", "min_quality")] = setting
-    config = _config("synthetic:u=2,v=1", autopilot=autopilot, settings=settings)
+    config = _config("synthetic:u=2,v=1", autopilot=autopilot, model=model, settings=settings)
     code, daemon, _ = run_daemon(config, frames=40, source_factory=lambda: make_source(
         "synthetic:u=2,v=1", width=96, height=72, fps=100))
     assert code == 0 and daemon.min_quality == floor
-    message = "OPTICAL_FLOW" if autopilot == "ardupilot" else "OPTICAL_FLOW_RAD"
+    message = "OPTICAL_FLOW_RAD" if autopilot == "px4" else "OPTICAL_FLOW"
     with open(log_path, newline="") as f:
         sent = [int(r["quality"]) for r in csv.DictReader(f) if r["message"] == message]
-    late = sent[8:]  # (the first frames, history filling, are quality 0 whatever the summary says)
+    # (the first frames, history filling, are the link's restart marker and reports the
+    # summary rated before it was ready: skipped; the warm-up took 2 of the qualities)
+    late = sent[16:]
     if autopilot == "ardupilot":  # one report per frame
-        assert set(late) == {0} | {q for q in (20, 60, 140, 200) if q >= floor}, sent
-    else:  # (PX4's reports span two frames: their mean quality)
-        assert min(late) > 0 and min(late) < 128, sent
+        assert set(late) == {0} | {q for q in (20, 100, 200) if q >= floor}, sent
+    else:  # (PX4's reports span two frames: their mean quality, 0 if one of them was 0)
+        assert not any(0 < q < floor for q in late) and max(late) == 200, sent
+        assert (min(late) == 0) == (floor > 20), sent

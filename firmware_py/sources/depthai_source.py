@@ -217,16 +217,21 @@ class DepthAISource(FrameSource):
         pipeline.start()
         return pipeline, queue
 
-    def _play(self) -> None:
-        """Start a replay's pipeline: ReplayVideo plays the file from ``start()``, and the
-        daemon builds and warms up its engine between ``open()`` and the first read (seconds
-        on PoCL): started in ``open()``, a paced replay had played those seconds' frames to
-        a queue that keeps only the newest (a 4 s recording gave 1 frame)."""
+    def _play(self) -> bool:
+        """Start a replay's pipeline; False (logged) if it cannot start. ReplayVideo plays
+        the file from ``start()``, and the daemon builds and warms up its engine between
+        ``open()`` and the first read (seconds on PoCL): started in ``open()``, a paced
+        replay had played those seconds' frames to a queue that keeps only the newest (a
+        4 s recording gave 1 frame). A file whose replay cannot start has ended, as one
+        that cannot be opened (the daemon then stops, exit 2 before any frame): a retry
+        would fail the same way."""
         try:
             self._pipeline.start()
         except Exception as exc:
-            raise SourceError(f"{self.uri}: cannot start the DepthAI pipeline: {exc}") from None
+            log.error("%s: cannot start the DepthAI pipeline: %s", self.uri, exc)
+            return False
         self._playing = True
+        return True
 
     def open(self) -> None:
         self.close()
@@ -273,8 +278,8 @@ class DepthAISource(FrameSource):
     def read(self) -> Frame | None:
         if self._queue is None:
             raise SourceError(f"{self.uri}: not open")
-        if not self._playing:
-            self._play()
+        if not self._playing and not self._play():
+            return None
         if self._first is not None:
             # the frame open() waited for, unless a newer one came meanwhile (the daemon
             # builds its engine between open and the first read: seconds on PoCL)
