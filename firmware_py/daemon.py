@@ -296,6 +296,7 @@ class SourceKeeper:
         #: a reopen): the daemon checks what the camera delivers
         self.on_open: Callable[[FrameSource], None] | None = None
         self._bad_seen = 0  # the source's bad_frames already added to stats.bad_frames
+        self._missed_seen = 0  # its missed_frames already added to stats.dropped
         #: clock() (time.monotonic() in the daemon) when the current driver call started
         #: (the source's open, read or close; also the factory making it), None outside one
         self.busy_since: float | None = None
@@ -307,7 +308,7 @@ class SourceKeeper:
     def adopt(self, source: FrameSource) -> None:
         """Use an already opened source (opened at start-up to learn its size)."""
         self.source, self._opened_once = source, True
-        self._bad_seen = source.bad_frames
+        self._bad_seen, self._missed_seen = source.bad_frames, source.missed_frames
 
     def retry_after(self, delay_s: float) -> None:
         """Schedule the next open attempt ``delay_s`` from now."""
@@ -354,7 +355,7 @@ class SourceKeeper:
             self._fail(f"source: cannot open: {exc}")
             return False
         self.source, self._first_frame_at = source, None
-        self._bad_seen = source.bad_frames
+        self._bad_seen, self._missed_seen = source.bad_frames, source.missed_frames
         if self._opened_once:
             self.stats.reopens += 1
             log.info("source %s reopened", source.uri)
@@ -364,12 +365,17 @@ class SourceKeeper:
         return True
 
     def _count_bad(self, source: FrameSource) -> None:
-        """Add the frames the source itself skipped (a buffer it could not convert) to the
-        daemon's bad-frame count."""
+        """Add the frames the source itself skipped to the daemon's counts: a buffer it
+        could not convert (bad), a frame a paced file or flight moved past (dropped, as
+        the mailbox drops a camera's)."""
         seen = source.bad_frames
         if seen != self._bad_seen:
             self.stats.bad_frames += seen - self._bad_seen
             self._bad_seen = seen
+        missed = source.missed_frames
+        if missed != self._missed_seen:
+            self.stats.dropped += missed - self._missed_seen
+            self._missed_seen = missed
 
     def read(self) -> Frame | None:
         """Next frame, or None while the source is unavailable (back-off running)."""

@@ -153,6 +153,24 @@ def test_a_paced_file_skips_what_a_slow_reader_missed_at_a_bounded_cost(tmp_path
         assert np.array_equal(f.image, frames[f.index])
 
 
+def test_paced_sources_count_the_frames_a_slow_reader_missed(tmp_path):
+    """The frames a paced file or flight moves past are counted (``missed_frames``; the
+    daemon adds them to its dropped count, as the mailbox's drops of a camera's): a skip
+    is seen in the indices, and in no counter before."""
+    path = write_video(tmp_path / "clip.avi", flight_frames(200, width=32, height=24), fps=100.0)
+    for uri in (f"video:{path}", "synthetic:u=1,v=0"):
+        source = open_source(uri, width=32, height=24, fps=100.0, realtime=True)
+        try:
+            got = []
+            for _ in range(20):
+                got.append(source.read().index)
+                time.sleep(0.025)  # 2.5 frame periods of work per frame
+            missed = source.missed_frames
+        finally:
+            source.close()
+        assert missed == sum(b - a - 1 for a, b in zip(got, got[1:])) + got[0] and missed >= 20, (uri, got)
+
+
 def test_video_source_missing_file_named(tmp_path):
     with pytest.raises(SourceError, match="nothere.avi.*no such file"):
         open_source(f"video:{tmp_path}/nothere.avi")

@@ -304,3 +304,20 @@ def test_ardupilot_gets_quality_0_below_the_models_floor(tmp_path, monkeypatch, 
     else:  # (PX4's reports span two frames: their mean quality, 0 if one of them was 0)
         assert not any(0 < q < floor for q in late) and max(late) == 200, sent
         assert (min(late) == 0) == (floor > 20), sent
+
+
+def test_frames_a_paced_flight_moves_past_count_as_dropped():
+    """A --realtime flight read by a loop slower than its frame rate moves past the frames
+    it is late for, as a camera drops them: the daemon counts them as dropped (and the
+    frames whose detector output spans the skip as uneven)."""
+    config = _config("synthetic:u=2,v=1", settings={("source", "width"): 96, ("source", "height"): 72,
+                                                    ("source", "realtime"): True})
+
+    def slow(width, height):
+        real = emdflow.FlowEstimator(width, height, backend=config.engine.backend,
+                                     **config.engine.estimator_options())
+        return _SlowEngine(real, 0.025)  # 2.5 periods of the 100 fps flight
+
+    code, daemon, _ = run_daemon(config, frames=12, estimator_factory=slow)
+    assert code == 0
+    assert daemon.stats.dropped >= 12 and daemon.stats.skipped == 0

@@ -91,6 +91,9 @@ class FrameSource:
     bad_frames : int
         Frames skipped since construction because they could not be converted (a corrupt
         camera buffer); they never reach the caller.
+    missed_frames : int
+        Frames a paced (``--realtime``) file or flight moved past since construction
+        because its reader was late for them, as a camera drops them.
     crop_fraction : (float, float)
         Fractions of the delivered image's width and height that the processed frames show
         (1.0, 1.0 unless the camera or file has another aspect ratio than the processing
@@ -106,6 +109,7 @@ class FrameSource:
     #: Time the last :meth:`read` spent pacing (``--realtime``), µs: not capture work.
     waited_us: int = 0
     bad_frames: int = 0
+    missed_frames: int = 0
     crop_fraction: tuple[float, float] = (1.0, 1.0)
 
     def open(self) -> None:

@@ -198,7 +198,9 @@ class SyntheticSource(FrameSource):
     def read(self) -> Frame | None:
         due_us = None
         if self._pacer:
-            self._index, self.waited_us, due_us = self._pacer.next(self._index)
+            index, self.waited_us, due_us = self._pacer.next(self._index)
+            self.missed_frames += index - self._index
+            self._index = index
         image = self._render(self._index)
         # Paced: captured when due (like a camera); else when rendered.
         captured = due_us if due_us is not None else host_us()

@@ -204,8 +204,10 @@ class VideoFileSource(FrameSource):
         due_us = None
         if self._pacer:
             index, self.waited_us, due_us = self._pacer.next(self._index)
-            if index > self._index and not self._skip(index - self._index):
-                return None
+            if index > self._index:
+                if not self._skip(index - self._index):
+                    return None
+                self.missed_frames += index - self._index
             self._index = index
         image = self._grab()
         if image is None:
