@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import statistics
 import threading
 import time
 from collections import deque
@@ -546,7 +547,7 @@ class Daemon:
         #: the steps between the processed frames the detector's output spans now (index
         #: step, capture-time step in source frame periods); its length is set by run()
         self._steps: deque[tuple[int, int]] = deque(maxlen=3)
-        #: recent capture µs per source frame (step over index step): their mean is the period
+        #: recent capture µs per source frame (step over index step): their median is the period
         self._periods_us: deque[float] = deque(maxlen=8)
         #: frame quality below which the link gets 0 (Config.min_quality; set by run())
         self.min_quality = 0
@@ -856,7 +857,9 @@ class Daemon:
         elif prev is not None:
             index_step, dt = frame.index - prev.index, frame.timestamp_us - prev.timestamp_us
             self._periods_us.append(dt / index_step)
-            period_us = sum(self._periods_us) / len(self._periods_us)  # (a mean: jitter alternates)
+            # (a median of an even count: jitter that alternates averages out, and one stall
+            # does not move it)
+            period_us = statistics.median(self._periods_us)
             self._steps.append((index_step, round(dt / period_us)))
         uneven = len(set(self._steps)) > 1
         if self._blind_logged:

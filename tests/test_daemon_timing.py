@@ -205,7 +205,7 @@ class _DroppingSource:
         from firmware_py.sources import Frame
 
         frame = self.inner.read()
-        if frame is not None and frame.index in self.drop:
+        while frame is not None and frame.index in self.drop:
             frame = self.inner.read()
         if frame is None:
             return None
@@ -224,12 +224,13 @@ class _DroppingSource:
     ((30,), False, 1, 0, "paper", 3),       # a dropped frame: the indices jump
     ((30,), True, 1, 0, "paper", 3),        # ... or only the timestamps (indices that count reads)
     ((91,), True, 3, 0, "paper", 3),        # ... also in a subset of every 3rd frame (40 ms after 30)
+    (range(30, 50), True, 1, 0, "paper", 3),  # a 0.2 s stall only in the timestamps (no reset)
     ((30,), False, 1, 0, "extended", 6),    # delays up to 4, but at most 6 frames
     ((), False, 2, 0, "paper", 0),          # a steady subset (every other frame) is even
     ((), True, 1, 3000, "paper", 0),        # 13 and 7 ms steps at 100 fps: jitter, not a drop
     ((), False, 1, 0, "paper", 0),
-], ids=["dropped", "dropped-renumbered", "dropped-renumbered-every-3rd", "dropped-extended", "every-other",
-        "jitter", "none"])
+], ids=["dropped", "dropped-renumbered", "dropped-renumbered-every-3rd", "stall-renumbered", "dropped-extended",
+        "every-other", "jitter", "none"])
 def test_a_dropped_frame_sends_the_frames_it_unevens_with_quality_0(tmp_path, drop, renumber, every, jitter_us,
                                                                     model, uneven):
     """The paper model's output at frame t spans the frames t-3..t (templates over the
