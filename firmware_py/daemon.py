@@ -60,9 +60,10 @@ _GAP_INTERVALS = 3.0
 # recovery; the extended model needs 12 frames before its first flow).
 _STEADY_S = 5.0
 # Frames after an uneven step sent with quality 0, at most (see Daemon._process): the span
-# of the delay-1 and delay-2 channels, where audits measured the error (the extended
-# model's delay-4 channels stay off by 10-16 % a few frames longer, at slow speeds, but 12
-# blank frames are 200 ms at 60 fps: EKF3 and INAV stop using flow after that).
+# of the delay-1 and delay-2 channels, where audits measured the error. The extended
+# model's delay-4 channels span 12 and, at 0.5 px/frame, stay off a few frames longer
+# (12-16 % after a drop, ~25 % on two frames after a 0.2 s stall), but 12 blank frames are
+# 200 ms at 60 fps: EKF3 and INAV stop using flow after that.
 _UNEVEN_FRAMES_MAX = 6
 
 
