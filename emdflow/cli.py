@@ -23,13 +23,18 @@ from pathlib import Path
 __all__ = ["main", "build_parser", "run_flow", "run_render"]
 
 
+def _max_upscale(width: int, height: int) -> int:
+    """Largest enlargement (at least 1) keeping a flow video within
+    :data:`~emdflow.tools.video_io.MAX_VIDEO_SIDE` px a side."""
+    from emdflow.tools.video_io import MAX_VIDEO_SIDE
+
+    return max(1, MAX_VIDEO_SIDE // max(1, width, height))
+
+
 def _auto_upscale(width: int, height: int) -> int:
     """Integer enlargement that makes a flow video about 480 px wide (1..4), keeping an
     enlarged video within :data:`~emdflow.tools.video_io.MAX_VIDEO_SIDE`."""
-    from emdflow.tools.video_io import MAX_VIDEO_SIDE
-
-    wide = max(1, min(4, int(round(480 / max(1, width)))))
-    return max(1, min(wide, MAX_VIDEO_SIDE // max(1, width, height)))
+    return min(max(1, min(4, int(round(480 / max(1, width))))), _max_upscale(width, height))
 
 
 def _add_video_io_arguments(p: argparse.ArgumentParser, codec_help: str) -> None:
@@ -129,12 +134,12 @@ def run_flow(args) -> int:
     source, fps = _open_input(args)
     upscale = args.upscale or _auto_upscale(source.width, source.height)
     big = (source.width * upscale, source.height * upscale)
-    if upscale > 1 and max(big) > MAX_VIDEO_SIDE:
+    if upscale > _max_upscale(source.width, source.height):
         # (OpenCV failed on it: an allocation traceback, or "cannot write a ffv1 video")
         source.close()
         raise ToolError(f"--upscale {upscale}: {source.width}x{source.height} frames would become "
                         f"{big[0]}x{big[1]}; a flow video is at most {MAX_VIDEO_SIDE} px a side (at most "
-                        f"--upscale {max(1, MAX_VIDEO_SIDE // max(source.width, source.height))} here)", 2)
+                        f"--upscale {_max_upscale(source.width, source.height)} here)", 2)
     writer = VideoWriter(args.output, fps, args.codec)
     flo_dir = None
     if args.flo_dir:

@@ -297,8 +297,8 @@ class SourceKeeper:
         #: called with each source the keeper opens itself (a camera absent at start-up,
         #: a reopen): the daemon checks what the camera delivers
         self.on_open: Callable[[FrameSource], None] | None = None
-        self._bad_seen = 0  # the source's bad_frames already added to stats.bad_frames
-        self._missed_seen = 0  # its missed_frames already added to stats.dropped
+        #: the source's bad_frames and missed_frames already added to the daemon's counts
+        self._bad_seen = self._missed_seen = 0
         #: clock() (time.monotonic() in the daemon) when the current driver call started
         #: (the source's open, read or close; also the factory making it), None outside one
         self.busy_since: float | None = None
@@ -310,7 +310,7 @@ class SourceKeeper:
     def adopt(self, source: FrameSource) -> None:
         """Use an already opened source (opened at start-up to learn its size)."""
         self.source, self._opened_once = source, True
-        self._bad_seen, self._missed_seen = source.bad_frames, source.missed_frames
+        self._count_source_skips(source, counted=False)
 
     def retry_after(self, delay_s: float) -> None:
         """Schedule the next open attempt ``delay_s`` from now."""
@@ -357,7 +357,7 @@ class SourceKeeper:
             self._fail(f"source: cannot open: {exc}")
             return False
         self.source, self._first_frame_at = source, None
-        self._bad_seen, self._missed_seen = source.bad_frames, source.missed_frames
+        self._count_source_skips(source, counted=False)
         if self._opened_once:
             self.stats.reopens += 1
             log.info("source %s reopened", source.uri)
@@ -366,18 +366,15 @@ class SourceKeeper:
             self.on_open(source)
         return True
 
-    def _count_bad(self, source: FrameSource) -> None:
-        """Add the frames the source itself skipped to the daemon's counts: a buffer it
-        could not convert (bad), a frame a paced file or flight moved past (dropped, as
-        the mailbox drops a camera's)."""
-        seen = source.bad_frames
-        if seen != self._bad_seen:
-            self.stats.bad_frames += seen - self._bad_seen
-            self._bad_seen = seen
-        missed = source.missed_frames
-        if missed != self._missed_seen:
-            self.stats.dropped += missed - self._missed_seen
-            self._missed_seen = missed
+    def _count_source_skips(self, source: FrameSource, *, counted: bool = True) -> None:
+        """Add the frames the source itself skipped since the last call to the daemon's
+        counts: a buffer it could not convert (bad), a frame a paced file or flight moved
+        past (dropped, as the mailbox drops a camera's). ``counted=False``: only take the
+        source's counts as the starting point (a source just opened or adopted)."""
+        if counted:
+            self.stats.bad_frames += source.bad_frames - self._bad_seen
+            self.stats.dropped += source.missed_frames - self._missed_seen
+        self._bad_seen, self._missed_seen = source.bad_frames, source.missed_frames
 
     def read(self) -> Frame | None:
         """Next frame, or None while the source is unavailable (back-off running)."""
@@ -397,7 +394,7 @@ class SourceKeeper:
             else:
                 error = None
             finally:
-                self._count_bad(source)
+                self._count_source_skips(source)
             if error is not None:
                 self._fail(error if source.uri in error else f"source {source.uri}: {error}")
                 return None
@@ -543,8 +540,6 @@ class Daemon:
         self.exit_code = 0
         self.running = threading.Event()
         self._prev: Frame | None = None
-        #: (index step, capture µs) between the processed frames the detector's templates
-        #: span now (the last 3 x the longest delay steps; emptied at a reset)
         #: the steps between the processed frames the detector's output spans now (index
         #: step, capture-time step in source frame periods); its length is set by run()
         self._steps: deque[tuple[int, int]] = deque(maxlen=3)
@@ -841,28 +836,7 @@ class Daemon:
                          (frame.timestamp_us - prev.timestamp_us) / 1e6, frame.index, prev.index)
         if prev is not None:  # after the gap test: a stall must not widen its own threshold
             self._processed_intervals.add(frame.timestamp_us - prev.timestamp_us)
-        # A channel of delay D compares the changes R(t-D) - R(t-2D) and R(t) - R(t-D) with
-        # those a frame-step earlier (its templates read the states at t-2D, t-D and t): its
-        # output spans the frames t-3D..t, and assumes them evenly spaced. After a frame the
-        # camera or a paced file dropped, or a change of the steady subset, what the detector
-        # reports is not the flow (too little, then too much) at its usual quality: the
-        # frames whose span holds unequal steps (3 of the paper's model, up to
-        # _UNEVEN_FRAMES_MAX of the extended one's) are sent with quality 0. The state is
-        # kept (a reset blinds as long, and longer). Steps are counted in source frames:
-        # index steps, and capture-time steps in source periods (a V4L2 camera's indices
-        # count reads: its drops show only in the timestamps), the period measured from the
-        # recent steps (not the nominal fps, which a camera may not keep); rounding absorbs
-        # jitter.
-        if reset:
-            self._steps.clear()  # (no step to compare across a reset: the history refills)
-        elif prev is not None:
-            index_step, dt = frame.index - prev.index, frame.timestamp_us - prev.timestamp_us
-            self._periods_us.append(dt / index_step)
-            # (a median of an even count: jitter that alternates averages out, and one stall
-            # does not move it)
-            period_us = statistics.median(self._periods_us)
-            self._steps.append((index_step, round(dt / period_us)))
-        uneven = len(set(self._steps)) > 1
+        uneven = self._uneven(frame, None if reset else prev)
         if self._blind_logged:
             log.info("source delivering again")
             self._blind_logged = False
@@ -905,6 +879,33 @@ class Daemon:
         self._prev = frame
         self._last_frame_host_s = now_s
         self.subset.observe_busy((t3 - t0) / 1e6, now_s)
+
+    def _uneven(self, frame: Frame, prev: Frame | None) -> bool:
+        """Does the detector's output at ``frame`` span steps of different lengths between
+        processed frames (``prev``: the processed frame before it, None after a reset)?
+
+        A channel of delay D compares the changes R(t-D) - R(t-2D) and R(t) - R(t-D) with
+        those a frame-step earlier (its templates read the states at t-2D, t-D and t): its
+        output spans the frames t-3D..t, and assumes them evenly spaced. After a frame the
+        camera or a paced file dropped, or a change of the steady subset, what the detector
+        reports is not the flow (too little, then too much) at its usual quality: the
+        frames whose span holds unequal steps (3 of the paper's model, up to
+        :data:`_UNEVEN_FRAMES_MAX` of the extended one's) are sent with quality 0, and the
+        state is kept (a reset blinds as long, and longer). Steps are counted in source
+        frames: index steps, and capture-time steps in source periods (a V4L2 camera's
+        indices count reads: its drops show only in the timestamps), the period measured
+        from the recent steps (not the nominal fps, which a camera may not keep); rounding
+        absorbs jitter.
+        """
+        if prev is None:
+            self._steps.clear()  # (no step to compare across a reset: the history refills)
+        else:
+            index_step, dt = frame.index - prev.index, frame.timestamp_us - prev.timestamp_us
+            self._periods_us.append(dt / index_step)
+            # (a median of an even count: jitter that alternates averages out, and one stall
+            # does not move it)
+            self._steps.append((index_step, round(dt / statistics.median(self._periods_us))))
+        return len(set(self._steps)) > 1
 
     def _mounted_balance(self, cues) -> tuple[float, float]:
         """The left/right and top/bottom balance in the axes of a default-mounted camera,

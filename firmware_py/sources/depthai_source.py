@@ -204,6 +204,7 @@ class DepthAISource(FrameSource):
             output = self._build_camera(dai, pipeline)
             # Live camera: keep only the newest frame, never queue into latency.
             queue = output.createOutputQueue(maxSize=1, blocking=False)
+            pipeline.start()
         else:
             pipeline = dai.Pipeline(False)  # host only, no device
             output = self._build_replay(dai, pipeline)
@@ -213,8 +214,6 @@ class DepthAISource(FrameSource):
             queue = _ReplayFrames(newest_only=self.realtime)
             # DepthAI's own queue only carries the callback: never blocking, never read
             output.createOutputQueue(maxSize=1, blocking=False).addCallback(queue.put)
-            return pipeline, queue
-        pipeline.start()
         return pipeline, queue
 
     def _play(self) -> bool:
@@ -361,11 +360,11 @@ class DepthAISource(FrameSource):
                     self._queue.stop()
                 if self._playing:  # (a replay not read from never started)
                     self._pipeline.stop()
-                if self._playing and not self.live:
-                    # the replay thread may be in our callback: let it leave (wait() lets go
-                    # of the GIL) before the pipeline is dropped, whose destructor waits for
-                    # that thread while holding the GIL the callback needs: a hang
-                    self._pipeline.wait()
+                    if not self.live:
+                        # the replay thread may be in our callback: let it leave (wait() lets
+                        # go of the GIL) before the pipeline is dropped, whose destructor
+                        # waits for that thread while holding the GIL the callback needs
+                        self._pipeline.wait()
             except Exception as exc:  # closing must never raise
                 log.debug("%s: pipeline stop: %s", self.uri, exc)
             self._pipeline = None
