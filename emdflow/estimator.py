@@ -71,9 +71,12 @@ class FlowEstimator:
         adds slow channels (1/2 and 1/4 px/frame at scale 1).
     delay_scales : tuple of int, optional
         Scales at which delays > 1 apply (default ``(1,)``).
-    threshold_mode : {'fixed', 'adaptive'}, optional
-        ``'fixed'`` (default, the paper) or ``'adaptive'``: θ follows the scene contrast
-        frame by frame (see :class:`emdflow.EngineParams`).
+    threshold_mode : {'fixed', 'adaptive', 'local'}, optional
+        ``'fixed'`` (default, the paper), ``'adaptive'``: θ follows the scene contrast
+        frame by frame, or ``'local'``: the same per tile of the frame, so each part of the
+        view follows its own contrast (see :class:`emdflow.EngineParams`).
+    threshold_tile : int, optional
+        Side of the tiles of ``threshold_mode='local'``, px (default 64; a multiple of 32).
     adaptive_gain, threshold_min, threshold_max : float, optional
         Gain and limits of the adaptive threshold, gray levels.
     brightness_compensation : bool, optional
@@ -131,6 +134,7 @@ class FlowEstimator:
         delays=(1,),
         delay_scales=(1,),
         threshold_mode: str = "fixed",
+        threshold_tile: int = 64,
         adaptive_gain: float = 0.4,
         threshold_min: float = 1.5,
         threshold_max: float = 10.0,
@@ -168,6 +172,7 @@ class FlowEstimator:
             delays=delays,
             delay_scales=delay_scales,
             threshold_mode=threshold_mode,
+            threshold_tile=threshold_tile,
             adaptive_gain=adaptive_gain,
             threshold_min=threshold_min,
             threshold_max=threshold_max,

@@ -277,7 +277,14 @@ class _Layout:
         # out as the state planes' rows (OUT_PLANE words each: H rows of NWP words, padded)
         self.out_words = 2 * 5 * self.OUT_PLANE
         self.stats_offset = _ceil(4 * self.out_words, 64) * 64
-        self.result_bytes = self.stats_offset + 4 * self.n_stats
+        # the local threshold's contrast sums: per even row and tile, rows padded to whole
+        # tiles (the padding, never written, stays zero) so the host sums them by a reshape
+        self.LOCAL = int(params.threshold_mode == "local")
+        self.NTY, self.NTX = params.threshold_tiles(width, height)
+        self.TILE = params.threshold_tile
+        self.tile_offset = self.n_stats
+        self.tile_rows = self.NTY * self.TILE // 2 if self.LOCAL else 0
+        self.result_bytes = self.stats_offset + 4 * (self.n_stats + self.tile_rows * self.NTX)
         table = EngineParams.orientation_table()
         w = params.weights
         if list(w) != list(w)[::-1]:  # prefilter.cl adds mirror taps before multiplying
@@ -310,6 +317,7 @@ class _Layout:
             "CLASS_STEPS": join(params.class_steps) or "0",
             "ORIENT_C": join(table[:, 0]),
             "ORIENT_S": join(table[:, 1]),
+            "LOCAL_THRESHOLD": self.LOCAL, "TILE": self.TILE, "NTX": self.NTX, "TILE_OFFSET": self.tile_offset,
         }
 
     def plane_rows(self, flat: np.ndarray) -> np.ndarray:
@@ -582,9 +590,24 @@ class OpenCLEngine:
         # brightness compensation: per slot of P the frame's pixel sum, then the
         # prefilter's per-strip sums, then each channel's gain (see common.cl, integral.cl)
         self.bright_buf = cl.Buffer(ctx, mf.READ_WRITE, 4 * (lay.P_SLOTS * (1 + lay.NSTRIPS) + len(params.channels)))
+        # the local threshold's tiles (theta_q per tile, written by the host before each
+        # frame; one unused int otherwise)
+        n_tiles = lay.NTY * lay.NTX if lay.LOCAL else 1
+        shared = _shared_buffer(cl, ctx, self.queue, self.device, 4 * n_tiles, host_writes=True)
+        if shared is not None:
+            self.theta_buf, host = shared
+            self._theta_host = host.view(np.int32).reshape(-1)
+        else:
+            self.theta_buf = cl.Buffer(ctx, mf.READ_ONLY, 4 * n_tiles)
+            self._theta_host = None
+        self._theta_staging = np.zeros(n_tiles, np.int32)  # (the enqueued copy's source)
+        #: pixels each tile's contrast statistic samples ('local')
+        self._tile_samples = params.tile_contrast_samples(width, height)
         debug_words = 4 * len(params.channels) * lay.OUT_PLANE if debug else 1
         self.debug_buf = cl.Buffer(ctx, mf.READ_WRITE, 4 * debug_words)
-        for buf in (self.frame_buf, self.p_buf, self.sat_buf, self.dsat_buf):
+        # (the result buffers too: the padding rows of the tiles' contrast sums are never
+        # written and must read zero)
+        for buf in (self.frame_buf, self.p_buf, self.sat_buf, self.dsat_buf, *(b for b, _ in self._results)):
             cl.enqueue_fill_buffer(self.queue, buf, np.uint8(0), 0, buf.size)
         # kernel objects of our own (the program is shared per process and shape; kernel
         # arguments are per object, so engines in different threads never collide)
@@ -608,9 +631,9 @@ class OpenCLEngine:
                                    self.bright_buf)
         self._k_integral.set_args(self.sat_buf, self.dsat_buf, zero, self.bright_buf, zero)
         self._k_states.set_args(self.sat_buf, self.dsat_buf, self.planes, self.p_buf, self.frame_buf, self.result,
-                                zero, zero, self.bright_buf)
+                                zero, zero, self.bright_buf, self.theta_buf)
         self._k_evd.set_args(self.planes, self.result, self.debug_buf, self.sat_buf, self.p_buf, zero, zero,
-                             self.bright_buf)
+                             self.bright_buf, self.theta_buf)
         self._set_prefilter, self._set_integral, self._set_states, self._set_evd = (
             _int_arg_setter(k, i) for k, i in ((self._k_prefilter, 4), (self._k_integral, 2),
                                                (self._k_states, 6), (self._k_evd, 5)))
@@ -619,19 +642,25 @@ class OpenCLEngine:
         self.reset()
 
     def _views(self, host: np.ndarray) -> tuple:
-        """``(planes, counters, positions, histograms)`` views of a result buffer's host
-        memory: the bit planes as (2 axes, 5 planes, H, NW) words, the counter copies
-        (COUNTER_COPIES, counters) and the position and histogram copies (int32)."""
+        """``(planes, counters, positions, histograms, tiles)`` views of a result buffer's
+        host memory: the bit planes as (2 axes, 5 planes, H, NW) words, the counter copies
+        (COUNTER_COPIES, counters), the position and histogram copies (int32; None without
+        the summary's evidence) and the local threshold's contrast sums as (tile rows,
+        even rows of a tile, tile columns) (None without it)."""
         lay = self.layout
         planes = lay.plane_rows(host[: 4 * lay.out_words].view(np.uint32).reshape(2, 5, lay.OUT_PLANE))
         ints = host[lay.stats_offset :].view(np.int32)
         counters = ints[: lay.pos_offset].reshape(lay.COUNTER_COPIES, lay.SLOT_INTS)[:, : lay.n_fixed]
+        tiles = None
+        if lay.LOCAL:
+            tiles = ints[lay.tile_offset : lay.tile_offset + lay.tile_rows * lay.NTX].reshape(
+                lay.NTY, lay.TILE // 2, lay.NTX)
         if not self.params.summary_evidence:
-            return planes, counters, None, None
+            return planes, counters, None, None, tiles
         positions = ints[lay.pos_offset : lay.hist_offset].reshape(lay.POS_COPIES, lay.pos_size)
         hist = ints[lay.hist_offset : lay.hist_offset + lay.HIST_COPIES * lay.hist_size].reshape(
             lay.HIST_COPIES, lay.hist_size)
-        return planes, counters, positions, hist
+        return planes, counters, positions, hist, tiles
 
     def reset(self) -> None:
         """Forget the history: zero every state plane (and their padding)."""
@@ -666,9 +695,12 @@ class OpenCLEngine:
         self._set_integral(2, slot)
         self._set_integral(4, p_slot)
         self._set_states(6, t)
-        self._set_states(7, int(self.theta_q))
+        # (the local threshold's tiles are in theta_buf; the kernels then take the largest
+        # as the frame's, which only chooses the states' arithmetic: see states.cl)
+        theta_q = int(np.max(self.theta_q))
+        self._set_states(7, theta_q)
         self._set_evd(5, t)
-        self._set_evd(6, int(self.theta_q))
+        self._set_evd(6, theta_q)
         # (one result buffer, or one the host cannot read in place: no turns to take)
         rotating = len(self._results) > 1
         slot_index = self.t % len(self._results)
@@ -686,6 +718,13 @@ class OpenCLEngine:
             upload = ()
         else:
             upload = (cl.enqueue_copy(q, self.frame_buf, np.ascontiguousarray(frame), is_blocking=False),)
+        if lay.LOCAL:  # the tiles' thresholds (one value for all before the first frame)
+            if self._theta_host is not None:
+                self._theta_host[:] = np.ravel(self.theta_q)
+            else:
+                self._theta_staging[:] = np.ravel(self.theta_q)
+                # (not among the frame's traced commands: a few bytes)
+                cl.enqueue_copy(q, self.theta_buf, self._theta_staging, is_blocking=False)
         events = (
             *upload,
             launch(q, self._k_prefilter, self._g_strips, self._l_strips),
@@ -711,12 +750,15 @@ class OpenCLEngine:
         codes = PackedCodes(planes, lay.W)
         if rotating:
             self._result_codes[slot_index] = weakref.ref(codes)
-        _, counters, position_copies, hist_copies = views
+        _, counters, position_copies, hist_copies, tiles = views
         # (the counters in int64 before they are added up: the contrast sum of a large
         # frame passes 2^31, each copy's share of it does not)
         stats = counters.sum(axis=0, dtype=np.int64)
         self.last_theta_q = self.theta_q
-        self.theta_q = self.params.next_threshold_q(int(stats[STAT_CONTRAST]), self._contrast_samples)
+        #: each tile's contrast sum of this frame ('local'; None otherwise)
+        self.tile_contrast = tiles.sum(axis=1, dtype=np.int64) if tiles is not None else None
+        self.theta_q = self.params.next_threshold_q(int(stats[STAT_CONTRAST]), self._contrast_samples,
+                                                    self.tile_contrast, self._tile_samples)
         if not self.params.summary_evidence:
             return codes, stats, None, None
         n_ch = len(lay.channels)

@@ -108,6 +108,9 @@ def gaussian_weights(size: int, total: int = 256) -> tuple[int, ...]:
 #: Channels (scale, delay pairs) an engine can have: a channel's index + 1 is a 4-bit code.
 MAX_CHANNELS = 15
 
+#: ``EngineParams.threshold_mode`` values
+THRESHOLD_MODES = ("fixed", "adaptive", "local")
+
 
 def _is_real(value) -> bool:
     """A finite real number (numpy scalars too), not a bool or a string."""
@@ -159,12 +162,21 @@ class EngineParams:
         px/frame at scale 1.
     delay_scales : tuple of int
         Scales at which the delays > 1 are applied.
-    threshold_mode : {'fixed', 'adaptive'}
+    threshold_mode : {'fixed', 'adaptive', 'local'}
         ``'fixed'`` (the paper): θ = ``threshold`` always. ``'adaptive'``: contrast
         adaptation (the paper's §5 future work) — θ for frame ``t`` is
         ``clip(adaptive_gain · g(t−1), threshold_min, threshold_max)`` with ``g`` the mean
         ``|ΔxP| + |ΔyP|`` (central differences, gray levels) of the previous frame, so the
-        detector keeps its density when scene contrast or exposure changes.
+        detector keeps its density when scene contrast or exposure changes. ``'local'``:
+        the same rule per square tile of ``threshold_tile`` px (:meth:`next_threshold_q`),
+        so a shaded or low-contrast part of the view keeps its own density beside a
+        bright, contrasty one (one global θ set by the contrasty part leaves it blind).
+        Every use of θ at a pixel — its states' threshold, its texture test, the gradient
+        class of a detection there — takes its tile's θ.
+    threshold_tile : int
+        Side of the local threshold's tiles, px (a multiple of 32 from 32 to 1024; tile
+        ``(y // threshold_tile, x // threshold_tile)``; the last row and column of tiles
+        may be cut by the frame's edge). Used by ``threshold_mode='local'`` only.
     adaptive_gain, threshold_min, threshold_max : float
         Gain and limits of the adaptive threshold (gray levels). The defaults give θ ≈ 4–8
         on the bundled photographs at full contrast (θ = 5 is the paper's) and follow a
@@ -230,6 +242,7 @@ class EngineParams:
     delays: tuple[int, ...] = (1,)
     delay_scales: tuple[int, ...] = (1,)
     threshold_mode: str = "fixed"
+    threshold_tile: int = 64
     adaptive_gain: float = 0.4
     threshold_min: float = 1.5
     threshold_max: float = 10.0
@@ -250,8 +263,13 @@ class EngineParams:
             raise ValueError(f"evidence_row_step={step!r}: expected a whole number of rows from 1 "
                              "to 1024, or 0 for automatic")
         object.__setattr__(self, "evidence_row_step", int(step))
-        if self.threshold_mode not in ("fixed", "adaptive"):
-            raise ValueError(f"threshold_mode={self.threshold_mode!r}: expected 'fixed' or 'adaptive'")
+        if self.threshold_mode not in THRESHOLD_MODES:
+            raise ValueError(f"threshold_mode={self.threshold_mode!r}: expected 'fixed', 'adaptive' or 'local'")
+        tile = self.threshold_tile
+        if not _is_whole(tile) or not 32 <= tile <= 1024 or tile % 32:
+            raise ValueError(f"threshold_tile={tile!r}: expected a multiple of 32 px from 32 to 1024 "
+                             "(tiles hold whole 32-pixel words of the state planes)")
+        object.__setattr__(self, "threshold_tile", int(tile))
         for name in ("adaptive_gain", "threshold_min", "threshold_max"):
             value = getattr(self, name)
             if not (_is_real(value) and 0 < value <= 255):
@@ -339,12 +357,17 @@ class EngineParams:
         """Fixed-point threshold ``round(256 θ)`` (what both backends compute with)."""
         return int(round(float(theta) * 256))
 
-    def box_threshold(self, k: int, theta_q: int | None = None) -> int:
+    def box_threshold(self, k: int, theta_q=None):
         """Integer threshold on a k×k box-sum difference: ``(θq · k²) >> 8`` = ``floor(θ̂ · k²)``,
         ``θ̂ = θq / 256``, θ rounded to a multiple of 1/256: ``floor(θ · k²)`` itself for the
-        default 5.0, otherwise possibly one box-sum unit away (θ = 0.1, k = 13: 17, not 16)."""
-        q = self.threshold_q(self.threshold) if theta_q is None else int(theta_q)
-        return (q * k * k) >> 8
+        default 5.0, otherwise possibly one box-sum unit away (θ = 0.1, k = 13: 17, not 16).
+        ``theta_q`` may be an integer array (a per-pixel map, :meth:`theta_map`): the
+        thresholds are then an array of the same shape."""
+        if theta_q is None:
+            theta_q = self.threshold_q(self.threshold)
+        if np.ndim(theta_q):
+            return (np.asarray(theta_q, np.int64) * (k * k)) >> 8
+        return (int(theta_q) * k * k) >> 8
 
     @staticmethod
     def compensated_threshold(box_threshold: int) -> int:
@@ -359,8 +382,11 @@ class EngineParams:
         of the contrast lit 18–21× the slow channels' states of a steady exposure (now
         2–4×: the rounding noise of a compensated change is no longer the same in both
         frames). ``256 · T + 128`` is the plain test on the compensated change rounded to
-        whole units (halves down), and with ρ = 256 exactly the plain test.
+        whole units (halves down), and with ρ = 256 exactly the plain test. An array of
+        thresholds (``'local'``) gives an array.
         """
+        if np.ndim(box_threshold):
+            return 256 * np.asarray(box_threshold, np.int64) + 128
         return 256 * int(box_threshold) + 128
 
     #: Largest brightness ratio of :meth:`brightness_ratio_q` (×256): 16× brighter. Keeps
@@ -379,8 +405,11 @@ class EngineParams:
             return 256
         return min((512 * now + then) // (2 * then), self.BRIGHTNESS_RATIO_MAX_Q)
 
-    def texture_threshold_for(self, theta_q: int) -> int:
-        """Threshold on ``|ΔxP| + |ΔyP|`` for a textured pixel: ``floor(2θ)``."""
+    def texture_threshold_for(self, theta_q):
+        """Threshold on ``|ΔxP| + |ΔyP|`` for a textured pixel: ``floor(2θ)`` (an array for
+        an array of thresholds)."""
+        if np.ndim(theta_q):
+            return (2 * np.asarray(theta_q, np.int64)) >> 8
         return (2 * int(theta_q)) >> 8
 
     @property
@@ -388,13 +417,54 @@ class EngineParams:
         """:meth:`texture_threshold_for` the fixed threshold."""
         return self.texture_threshold_for(self.threshold_q(self.threshold))
 
-    def next_threshold_q(self, contrast_sum: int, sampled: int) -> int:
-        """Threshold (fixed point) for the next frame from this frame's contrast statistic."""
-        if self.threshold_mode == "fixed" or sampled <= 0:
+    def next_threshold_q(self, contrast_sum: int, sampled: int, tile_sums=None, tile_samples=None):
+        """Threshold (fixed point) for the next frame from this frame's contrast statistic.
+
+        ``'fixed'`` and ``'adaptive'``: one int. ``'local'``: an int64 array of the tiles'
+        thresholds, shape :meth:`threshold_tiles`, each from its tile's contrast sum
+        (``tile_sums``) over its sampled pixels (``tile_samples``, see
+        :meth:`tile_contrast_samples`); a tile without samples (a sliver at the frame's
+        edge) takes the whole frame's. Both backends call this one function, so their
+        thresholds agree exactly once their contrast sums do.
+        """
+        if self.threshold_mode == "fixed" or (sampled <= 0 and self.threshold_mode == "adaptive"):
             return self.threshold_q(self.threshold)
-        g = contrast_sum / sampled
-        theta = min(self.threshold_max, max(self.threshold_min, self.adaptive_gain * g))
-        return self.threshold_q(theta)
+        whole = self.adaptive_gain * contrast_sum / sampled if sampled > 0 else self.threshold
+        if self.threshold_mode == "adaptive":
+            return self.threshold_q(min(self.threshold_max, max(self.threshold_min, whole)))
+        sums = np.asarray(tile_sums, np.float64)
+        samples = np.asarray(tile_samples, np.float64)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            theta = np.where(samples > 0, self.adaptive_gain * sums / samples, whole)
+        theta = np.clip(theta, self.threshold_min, self.threshold_max)
+        return np.rint(theta * 256).astype(np.int64)  # (half to even, as threshold_q's round)
+
+    def threshold_tiles(self, width: int, height: int) -> tuple[int, int]:
+        """``(rows, columns)`` of the local threshold's tiles for a frame (1, 1 unless
+        ``threshold_mode='local'``)."""
+        if self.threshold_mode != "local":
+            return 1, 1
+        t = self.threshold_tile
+        return -(-int(height) // t), -(-int(width) // t)
+
+    def tile_contrast_samples(self, width: int, height: int) -> np.ndarray:
+        """Pixels each tile's contrast statistic samples (the sampled pixels of
+        :meth:`contrast_samples` that fall in it), int64, shape :meth:`threshold_tiles`."""
+        rows = np.arange(2, int(height) - 1, 2)  # even interior rows
+        cols = np.arange(1, int(width) - 1)
+        t = self.threshold_tile if self.threshold_mode == "local" else max(int(width), int(height))
+        ny, nx = -(-int(height) // t), -(-int(width) // t)
+        per_row = np.bincount(rows // t, minlength=ny)[:ny]
+        per_col = np.bincount(cols // t, minlength=nx)[:nx]
+        return np.outer(per_row, per_col).astype(np.int64)
+
+    def theta_map(self, theta_q, width: int, height: int):
+        """The fixed-point threshold at each pixel: ``theta_q`` itself (an int) unless it is
+        a tile array (``'local'``), which is spread over its tiles' pixels, (height, width)."""
+        if np.ndim(theta_q) == 0:
+            return int(theta_q)
+        t = self.threshold_tile
+        return np.repeat(np.repeat(np.asarray(theta_q, np.int64), t, axis=0), t, axis=1)[: int(height), : int(width)]
 
     @staticmethod
     def contrast_samples(width: int, height: int) -> int:

@@ -299,7 +299,7 @@ def summary_statistics(
     v_code: np.ndarray,
     receptors_mid: dict[int, np.ndarray],
     states_now: list[np.ndarray],
-    theta_q: int | None = None,
+    theta_q: "int | np.ndarray | None" = None,
     step_states: np.ndarray | None = None,
     gains_q: dict | None = None,
     diagonal_codes: tuple[np.ndarray, np.ndarray] | None = None,
@@ -339,6 +339,12 @@ def summary_statistics(
     hist : ndarray of int64, shape (params.evidence_axes, 2·n_channels, params.histogram_bins)
     positions : ndarray of int64, shape (2, 2·n_channels, POSITION_BINS)
         Both None without ``params.summary_evidence``.
+    tile_contrast : ndarray of int64, shape ``params.threshold_tiles(W, H)``
+        The contrast statistic's sum per tile of the local threshold (zero unless
+        ``threshold_mode='local'``).
+
+    ``theta_q`` is the threshold of the frame (an int) or, for ``'local'``, of each tile
+    (an array): every use above takes the threshold at its pixel.
     """
     channels = params.channels
     H, W = frame.shape
@@ -346,13 +352,24 @@ def summary_statistics(
     stats[STAT_U_DETECTIONS] = np.count_nonzero(u_code)
     stats[STAT_V_DETECTIONS] = np.count_nonzero(v_code)
     q = params.threshold_q(params.threshold) if theta_q is None else theta_q
+    q = params.theta_map(q, W, H)  # (an int, or each pixel's tile's for 'local')
+    ny, nx = params.threshold_tiles(W, H)
+    tile_contrast = np.zeros((ny, nx), np.int64)
     if H >= 3 and W >= 3:
         p = p_now.astype(np.int64)
         gx = np.abs(p[1:-1, 2:] - p[1:-1, :-2])
         gy = np.abs(p[2:, 1:-1] - p[:-2, 1:-1])
         grad = (gx + gy)[1::2]  # rows 2, 4, …
-        stats[STAT_TEXTURED] = np.count_nonzero(grad > params.texture_threshold_for(q))
+        tex = params.texture_threshold_for(q)
+        if np.ndim(tex):
+            tex = tex[2:-1:2, 1:-1]
+        stats[STAT_TEXTURED] = np.count_nonzero(grad > tex)
         stats[STAT_CONTRAST] = int(grad.sum())
+        if params.threshold_mode == "local":
+            t = params.threshold_tile
+            rows = np.arange(2, H - 1, 2) // t
+            cols = np.arange(1, W - 1) // t
+            np.add.at(tile_contrast, (rows[:, None], cols[None, :]), grad)
     even = frame[0::2]
     stats[STAT_SATURATED] = np.count_nonzero((even <= 2) | (even >= 253))
     for c, s in enumerate(states_now):
@@ -362,7 +379,7 @@ def summary_statistics(
     stats[STAT_STEP_CHANGED] = np.count_nonzero(step)
     stats[STAT_BRIGHTENING] = np.count_nonzero(step > 0)
     if not params.summary_evidence:
-        return stats, None, None
+        return stats, None, None, tile_contrast
     positions = np.zeros((2, 2 * len(channels), POSITION_BINS), np.int64)
 
     hist = np.zeros((params.evidence_axes, 2 * len(channels), params.histogram_bins), np.int64)
@@ -408,13 +425,13 @@ def summary_statistics(
         # gradient is of t - D and the threshold of t, so under an exposure drift the gain
         # between them is taken out (as the states do), or the classes would drift with it
         strength = 2 * channel_gain[chan[keep]] * (np.abs(gxs) + np.abs(gys))[keep]
-        unit = 2 * q * ks[keep] ** 2
+        unit = 2 * (q[ys[keep], xs[keep]] if np.ndim(q) else q) * ks[keep] ** 2
         cls = np.zeros(strength.size, np.int64)
         for m in params.class_steps:
             cls += strength >= m * unit
         codes = 2 * chan[keep] + negative[keep]
         np.add.at(hist[axis], (codes, cls * ORIENTATION_BINS + bins), 1)
-    return stats, hist, positions
+    return stats, hist, positions, tile_contrast
 
 
 class ReferenceEngine:
@@ -461,10 +478,11 @@ class ReferenceEngine:
         self.matches = {}
         receptors_mid = {}
         gains_q = {}  # each channel's exposure gain over its delay, x256
+        theta_map = prm.theta_map(self.theta_q, self.width, self.height)
         for c, (k, d) in enumerate(prm.channels):
             if len(self._p_history) > d:
                 p_then = self._p_history[-1 - d]
-                T = prm.box_threshold(k, self.theta_q)
+                T = prm.box_threshold(k, theta_map)
                 ratio_q = gains_q[(k, d)] = prm.brightness_ratio_q(self._brightness[-1],
                                                                     self._brightness[-1 - d])
                 if ratio_q == 256:
@@ -502,12 +520,16 @@ class ReferenceEngine:
             diagonal = tuple(np.zeros_like(u_code) for _ in range(2, n_axes))
             for a, code in zip(range(2, n_axes), diagonal):
                 code[evidence_rows] = fuse_channels(pos[a], neg[a])
-        stats, hist, positions = summary_statistics(
+        stats, hist, positions, tile_contrast = summary_statistics(
             prm, frame, p_now, u_code, v_code, receptors_mid, self.states, self.theta_q, step_states,
             gains_q, diagonal,
         )
         self.last_theta_q = self.theta_q
-        self.theta_q = prm.next_threshold_q(int(stats[STAT_CONTRAST]), prm.contrast_samples(*frame.shape[::-1]))
+        #: each tile's contrast sum of this frame ('local'; one tile otherwise: zero)
+        self.tile_contrast = tile_contrast
+        W, H = self.width, self.height
+        self.theta_q = prm.next_threshold_q(int(stats[STAT_CONTRAST]), prm.contrast_samples(W, H),
+                                            tile_contrast, prm.tile_contrast_samples(W, H))
         self.frame_count += 1
         return u_code, v_code, stats, hist, positions
 

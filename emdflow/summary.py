@@ -1173,7 +1173,7 @@ def _looks_static(field: FlowField, opts: "SummaryOptions") -> bool:
     rather than a motion the detector cannot follow (too fast, flicker).
 
     Static: at most ``opts.static_changed`` of the scale-1 receptors changed; or, with the
-    contrast-adaptive threshold, the changes are sensor noise — the one-frame receptors of
+    contrast-adaptive threshold (one for the frame, or the local one per tile), the changes are sensor noise — the one-frame receptors of
     the smallest scale >= :data:`STATIC_SCALE` (the largest scale if none is; none if that
     is the finest) changed at less than ``opts.static_noise_ratio`` times the scale-1 rate
     (0 turns this test off). A k×k box sum changes under motion about as readily as one
@@ -1192,7 +1192,7 @@ def _looks_static(field: FlowField, opts: "SummaryOptions") -> bool:
     fine = changed[params.channels.index((params.scales[0], 1))]
     if fine <= opts.static_changed:
         return True
-    if params.threshold_mode != "adaptive":
+    if params.threshold_mode == "fixed":  # (the local threshold's tiles have the same floor)
         return False
     scales = params.scales  # (sorted by EngineParams)
     coarse_scale = next((k for k in scales if k >= STATIC_SCALE), scales[-1])

@@ -36,10 +36,24 @@
  *   NBINS           orientation bins; ORIENT_C, ORIENT_S boundary table (x 2^14)
  *   NCLASS, CLASS_STEPS  gradient-strength classes of the evidence and their steps m
  *                   (class = #{m : 512 |g|_1 >= m 2 theta_q k^2})
+ *   LOCAL_THRESHOLD 1 for the local threshold (EngineParams.threshold_mode 'local'): the
+ *                   threshold at a pixel is its tile's, theta_tiles[(y / TILE) NTX + x / TILE]
+ *                   (a kernel argument written by the host per frame), instead of theta_q
+ *   TILE, NTX       the tiles' side (a multiple of 32: a state word lies in one tile) and
+ *                   tiles per row of tiles
+ *   TILE_OFFSET     int offset (from STATS_OFFSET) of each even row's contrast sum per tile
+ *                   ((y / 2) NTX + tile column; rows 0 and H - 1 store 0), which the host
+ *                   adds up per tile for the next frame's thresholds
  *
  * Vectors are kept at 256 bits (ushort16, uint8): PoCL 3.0 miscompiles some 512-bit
  * vector code on machines without AVX-512 (LLVM aborts or broken cached binaries). */
 #define PLANE_WORDS ((H + 2 * PADR) * NWP)
+/* the fixed-point threshold of word i (32 px) of row y */
+#if LOCAL_THRESHOLD
+#define THETA_AT(theta_q, theta_tiles, y, i) ((theta_tiles)[((y) / TILE) * NTX + ((i) * 32) / TILE])
+#else
+#define THETA_AT(theta_q, theta_tiles, y, i) (theta_q)
+#endif
 /* first word of row y of the plane (ring slot, polarity 0 = positive / 1 = negative) */
 #define PLANE_ROW(slot, pol, y) (PHEAD + (((slot) * 2 + (pol)) * PLANE_WORDS) + ((y) + PADR) * NWP + 1)
 #define SAT_SIZE ((H + 1) * SSTRIDE)

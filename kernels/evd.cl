@@ -94,7 +94,7 @@ __attribute__((always_inline)) inline uint8 matches(__global const uint *planes,
 
 __kernel void velocity_detectors(__global const uint *planes, __global char *result,
                                  __global uint *debug, __global const ushort *sat, __global const uchar *P, int t,
-                                 int theta_q, __global const uint *bright)
+                                 int theta_q, __global const uint *bright, __global const int *theta_tiles)
 {
     const int f = get_global_id(0) * 8;   /* first flat word of the run */
     if (f >= H * NWP) return;  /* the global size is padded to whole work-groups */
@@ -141,7 +141,7 @@ __kernel void velocity_detectors(__global const uint *planes, __global char *res
             for (int w = 0; w < 8; w++) {
                 const int y = (f + w) / NWP, i = f + w - y * NWP - 1;
                 if (y % EVIDENCE_ROW_STEP == 0 && y < H && i >= 0)
-                    bin_detections(positions, hist, sat, P, bright, t, theta_q, axis, y, i, o[w], o[w + OUT_PLANE],
+                    bin_detections(positions, hist, sat, P, bright, t, THETA_AT(theta_q, theta_tiles, y, i), axis, y, i, o[w], o[w + OUT_PLANE],
                                    o[w + 2 * OUT_PLANE], o[w + 3 * OUT_PLANE], o[w + 4 * OUT_PLANE],
                                    &pos_run, &hist_run);
             }
@@ -169,7 +169,7 @@ __kernel void velocity_detectors(__global const uint *planes, __global char *res
         for (int w = 0; w < 8; w++) {
             const int y = (f + w) / NWP, i = f + w - y * NWP - 1;
             if (y % EVIDENCE_ROW_STEP == 0 && y < H && i >= 0)
-                bin_detections(0, hist, sat, P, bright, t, theta_q, axis, y, i, b0.w[w], b1.w[w], b2.w[w],
+                bin_detections(0, hist, sat, P, bright, t, THETA_AT(theta_q, theta_tiles, y, i), axis, y, i, b0.w[w], b1.w[w], b2.w[w],
                                b3.w[w], bs.w[w], &pos_run, &hist_run);
         }
         run_flush(hist, &hist_run);

@@ -141,7 +141,8 @@ inline bool wrapped_difference32(__global const ushort *dsat, int y, int x, int 
 
 __kernel void ternary_states(__global const ushort *sat, __global const ushort *dsat, __global uint *planes,
                              __global const uchar *P, __global const uchar *frame,
-                             __global char *result, int t, int theta_q, __global const uint *bright)
+                             __global char *result, int t, int theta_q, __global const uint *bright,
+                             __global const int *theta_tiles)
 {
     const int y = get_global_id(0);
     if (y >= H) return;  /* the global size is padded to whole work-groups */
@@ -154,7 +155,6 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
     #pragma unroll
     for (int c = 0; c < NCH; c++) {
         const int k = CK[c], r = k / 2, D = CD[c];
-        const int T = (theta_q * k * k) >> 8;   /* floor(theta k^2) */
         const int slot = CBASE[c] + t % CRING[c];
         __global uint *pos_row = planes + PLANE_ROW(slot, 0, y);
         __global uint *neg_row = planes + PLANE_ROW(slot, 1, y);
@@ -167,16 +167,20 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
         __global const uchar *P_then = P + pos_mod(t - D, P_SLOTS) * P_SIZE;
         /* brightness compensation: the exposure gain over D frames, x256 (integral_rows) */
         const int rq = COMPENSATE ? (int)bright[BRIGHT_RATIO + c] : 256;
-        /* the compensated change is not a whole number: > 256 T + 128 is the plain test
-         * (> T, i.e. >= T + 1) on it rounded to whole units (EngineParams.compensated_threshold) */
-        const int T256 = 256 * T + 128;
-        /* the gain's test fits 16-bit lanes (gain16_short) */
-        const bool short_gain = (rq > 128) & (rq < 384) & (T <= (k <= 11 ? 16000 : 4000));
         /* words from i_edge on hold pixels past W - 1 - r; word 0 holds x < r */
         const int i_edge = (W - r) / 32;
         int changed = 0, step_changed = 0, brightening = 0;
+        /* the gain's test fits 16-bit lanes (gain16_short; with the local threshold
+         * theta_q is the largest tile's, so the test holds for every word: the row keeps
+         * one path, and the paths give the same bits) */
+        const bool short_gain = (rq > 128) & (rq < 384) & (((theta_q * k * k) >> 8) <= (k <= 11 ? 16000 : 4000));
         for (int i = 0; i < NW; i++) {
             const int x = i * 32;
+            /* floor(theta k^2): the frame's threshold, or the word's tile's */
+            const int T = (THETA_AT(theta_q, theta_tiles, y, i) * k * k) >> 8;
+            /* the compensated change is not a whole number: > 256 T + 128 is the plain test
+             * (> T, i.e. >= T + 1) on it rounded to whole units (EngineParams.compensated_threshold) */
+            const int T256 = 256 * T + 128;
             /* the states without compensation (u..): the channel's own unless there is a
              * gain to compensate, and the exposure-step test's (finest channel) */
             uint pw, nw, upw = 0, unw = 0;
@@ -261,29 +265,55 @@ __kernel void ternary_states(__global const ushort *sat, __global const ushort *
          * theta); contrast: the sum of that quantity (drives the adaptive threshold).
          * Counted per lane, summed once per row. */
         const short16 lane = (short16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
-        const short tex_t = (short)((2 * theta_q) >> 8);
         int textured = 0, saturated = 0, contrast = 0;
+#if LOCAL_THRESHOLD
+        /* this row's contrast sum per tile (the host adds them up per tile) */
+        __global int *tile_contrast = (__global int *)(result + STATS_OFFSET) + TILE_OFFSET + (y / 2) * NTX;
+#define TILE_COLUMNS NTX
+#else
+#define TILE_COLUMNS 1
+#endif
         if (y >= 2 && y <= H - 2) {
             __global const uchar *row = P_now + y * PSTRIDE + PPAD;
             short16 tex_n = (short16)(0);   /* lane counts: at most W / 16 */
-            int8 con = (int8)(0);
-            for (int x = 0; x < W; x += 16) {
-                short16 gx = convert_short16(LOAD_UC16(row + x + 1)) - convert_short16(LOAD_UC16(row + x - 1));
-                short16 gy = convert_short16(LOAD_UC16(row + PSTRIDE + x)) - convert_short16(LOAD_UC16(row - PSTRIDE + x));
-                const short16 xs = lane + (short)x;
-                /* |g| by sign masks: PoCL 3.0 cannot scalarise abs() and calls max() */
-                const short16 sx = gx >> 15, sy = gy >> 15;
-                const short16 inside = (xs >= (short)1) & (xs <= (short)(W - 2));
-                const short16 g = (((gx ^ sx) - sx) + ((gy ^ sy) - sy)) & inside;
-                tex_n -= g > tex_t;
-                con += convert_int8(g.lo + g.hi);  /* <= 2 * 510: no overflow */
+            /* (one pass over the row without tiles; a tile's columns are whole 16-lane
+             * vectors, TILE being a multiple of 32) */
+            for (int tx = 0; tx < TILE_COLUMNS; tx++) {
+#if LOCAL_THRESHOLD
+                const int x_first = tx * TILE, x_end = x_first + TILE < W ? x_first + TILE : W;
+#else
+                const int x_first = 0, x_end = W;
+#endif
+                const short tex_t = (short)((2 * THETA_AT(theta_q, theta_tiles, y, x_first / 32)) >> 8);
+                int8 con = (int8)(0);
+                for (int x = x_first; x < x_end; x += 16) {
+                    short16 gx = convert_short16(LOAD_UC16(row + x + 1)) - convert_short16(LOAD_UC16(row + x - 1));
+                    short16 gy = convert_short16(LOAD_UC16(row + PSTRIDE + x)) - convert_short16(LOAD_UC16(row - PSTRIDE + x));
+                    const short16 xs = lane + (short)x;
+                    /* |g| by sign masks: PoCL 3.0 cannot scalarise abs() and calls max() */
+                    const short16 sx = gx >> 15, sy = gy >> 15;
+                    const short16 inside = (xs >= (short)1) & (xs <= (short)(W - 2));
+                    const short16 g = (((gx ^ sx) - sx) + ((gy ^ sy) - sy)) & inside;
+                    tex_n -= g > tex_t;
+                    con += convert_int8(g.lo + g.hi);  /* <= 2 * 510: no overflow */
+                }
+                const int4 c4 = con.lo + con.hi;
+                const int tile_sum = c4.x + c4.y + c4.z + c4.w;
+#if LOCAL_THRESHOLD
+                tile_contrast[tx] = tile_sum;
+#endif
+                contrast += tile_sum;
             }
             const short8 t8 = tex_n.lo + tex_n.hi;
             const int4 t4 = convert_int4(t8.lo) + convert_int4(t8.hi);
             textured = t4.x + t4.y + t4.z + t4.w;
-            const int4 c4 = con.lo + con.hi;
-            contrast = c4.x + c4.y + c4.z + c4.w;
         }
+#if LOCAL_THRESHOLD
+        else {
+            for (int tx = 0; tx < NTX; tx++) tile_contrast[tx] = 0;
+        }
+#endif
+#undef TILE_COLUMNS
         /* saturated: even rows, raw value <= 2 or >= 253, i.e. (uchar)(v + 3) <= 5 */
         __global const uchar *raw = frame + y * W;
         int x = 0;

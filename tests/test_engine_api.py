@@ -156,6 +156,11 @@ def test_bad_frames_raise_value_error_naming_expected_and_received(frame, messag
         (dict(evidence_row_step=-1), "evidence_row_step"),
         (dict(evidence_row_step=2.5), "evidence_row_step"),
         (dict(summary_evidence="no"), "summary_evidence"),
+        (dict(threshold_mode="tiles"), "threshold_mode"),
+        (dict(threshold_mode="local", threshold_tile=48), "threshold_tile"),
+        (dict(threshold_mode="local", threshold_tile=0), "threshold_tile"),
+        (dict(threshold_mode="local", threshold_tile=2048), "threshold_tile"),
+        (dict(threshold_mode="local", threshold_tile=64.0), "threshold_tile"),
     ],
 )
 def test_bad_parameters_raise_value_error_naming_them(kwargs, message):
@@ -431,3 +436,27 @@ def test_the_readme_usage_example_prints_what_its_comments_say(backend, capsys):
     flow_x, flow_y, quality = printed[0].split()
     assert said[0].startswith(f"{float(flow_x):.2f} {float(flow_y):.2f} {quality} ")
     assert said[1].startswith(printed[1] + ":")
+
+
+@pytest.mark.parametrize("size", [(96, 72), (97, 61), (33, 35), (320, 240), (65, 131)])
+@pytest.mark.parametrize("tile", [32, 64, 96])
+def test_local_threshold_tiles_share_the_frames_samples(size, tile):
+    """The tiles' sample counts are the frame's contrast samples split by tile (each
+    sampled pixel counted once), in a grid of ceil(size / tile) tiles; and a tile without
+    samples takes the frame's threshold, the others their own."""
+    from emdflow.params import EngineParams
+
+    width, height = size
+    params = EngineParams(threshold_mode="local", threshold_tile=tile)
+    samples = params.tile_contrast_samples(width, height)
+    assert samples.shape == params.threshold_tiles(width, height) == (-(-height // tile), -(-width // tile))
+    assert samples.sum() == params.contrast_samples(width, height)
+    sums = samples * 20  # a mean contrast of 20 gray levels everywhere ...
+    sums[0, 0] = samples[0, 0] * 5  # ... but 5 in the first tile
+    whole = int(sums.sum())
+    theta = params.next_threshold_q(whole, int(samples.sum()), sums, samples)
+    frame_theta = params.threshold_q(min(params.threshold_max, params.adaptive_gain * whole / samples.sum()))
+    assert theta[0, 0] == params.threshold_q(max(params.threshold_min, params.adaptive_gain * 5))
+    assert np.all(theta[samples == 0] == frame_theta)
+    if samples.size > 1:
+        assert np.all(theta[(samples > 0)][1:] == params.threshold_q(params.adaptive_gain * 20))

@@ -456,3 +456,50 @@ def test_int_arguments_fall_back_to_the_public_setter():
         opencl_backend._int_arg_setter(kernel, 3)(3, -7)
     opencl_backend._int_arg_setter(Raw(), 1)(1, 12345)
     assert seen == [(3, -7, "int32"), (3, -7, "int32"), (1, 0, "raw"), (1, 12345, "raw")]
+
+
+def _shaded_flight(width, height, count, flow=(1.4, -0.7), seed=5):
+    """A flight whose right half is in shade (light x 0.2): its tiles get lower thresholds."""
+    flight = CameraFlight("gravel", width=width, height=height, flow=flow, noise_sigma=2, seed=seed, shade=0.2)
+    return [flight.render(t) for t in range(count)]
+
+
+@pytest.mark.parametrize("portable", [False, True], ids=["x86", "portable"])
+@pytest.mark.parametrize("size,tile,model", [((97, 61), 32, "extended"), ((131, 77), 64, "extended"),
+                                             ((200, 131), 96, "paper"), ((64, 64), 64, "paper"),
+                                             ((33, 35), 32, "extended")])
+def test_local_threshold_is_exact(monkeypatch, size, tile, model, portable):
+    """``threshold_mode='local'``: each tile's contrast sum, the thresholds made from them,
+    and every use of a tile's threshold (states, texture count, gradient classes) agree;
+    sizes cut the last row and column of tiles (and 33 x 35 leaves a one-column tile
+    without samples, which takes the frame's threshold). The thresholds must differ
+    between tiles, or a kernel that read one tile's for all would pass."""
+    if portable:
+        monkeypatch.setenv(opencl_backend.PORTABLE_ENV, "1")
+    width, height = size
+    params = EngineParams(**{**MODELS[model], "threshold_mode": "local", "threshold_tile": tile,
+                             "gradient_classes": True})
+    frames = _shaded_flight(width, height, 12)
+    assert _compare(width, height, frames, params) > 0
+    ref, ocl = ReferenceEngine(width, height, params), opencl_backend.OpenCLEngine(width, height, params)
+    spread = 0
+    for frame in frames:
+        ref.step(frame)
+        ocl.step(frame)
+        assert np.array_equal(ref.tile_contrast, ocl.tile_contrast)
+        assert np.array_equal(ref.theta_q, ocl.theta_q)
+        assert ref.theta_q.shape == params.threshold_tiles(width, height)
+        spread = max(spread, int(ref.theta_q.max() - ref.theta_q.min()))
+    if width > tile:
+        assert spread >= 256, "the shaded tiles should have thresholds at least 1 gray level lower"
+
+
+@pytest.mark.parametrize("shared", [True, False], ids=["host memory", "enqueued copies"])
+def test_local_threshold_reaches_the_kernels_on_both_transfer_paths(monkeypatch, shared):
+    """The tiles' thresholds are written into host memory the kernels read, or enqueued
+    as a copy on other devices; both give the reference's field."""
+    if not shared:
+        monkeypatch.setattr(opencl_backend, "_shared_buffer", lambda *args, **kwargs: None)
+    width, height = 131, 67
+    params = EngineParams(**{**MODELS["extended"], "threshold_mode": "local", "threshold_tile": 32})
+    assert _compare(width, height, _shaded_flight(width, height, 14), params) > 0
