@@ -40,7 +40,7 @@ import time
 
 import numpy as np
 
-from .params import MODELS
+from .params import MODELS, THRESHOLD_MODES
 
 __all__ = ["main", "profile_stages", "run_benchmark"]
 
@@ -329,6 +329,9 @@ def _check_arguments(parser: argparse.ArgumentParser, args) -> dict:
         given.append(f"--evidence-row-step {args.evidence_row_step}")
     if not args.diagonal_evidence:
         kwargs["diagonal_evidence"] = False
+    if args.threshold_mode is not None:
+        kwargs["threshold_mode"] = args.threshold_mode
+        given.append(f"--threshold-mode {args.threshold_mode}")
     if args.dense_only:
         if not args.stages:  # (the timing table measures the dense-only engine in its own column)
             parser.error("--dense-only: only with --stages (the table has a dense-only column)")
@@ -371,6 +374,9 @@ def main(argv=None) -> int:
     parser.add_argument("--diagonal-evidence", action=argparse.BooleanOptionalAction, default=True,
                         help="with (default) or without the diagonal detectors' evidence for the "
                              "summary (EngineParams.diagonal_evidence)")
+    parser.add_argument("--threshold-mode", choices=THRESHOLD_MODES, default=None,
+                        help="the engine's threshold instead of the model's (EngineParams.threshold_mode; "
+                             "local: per 64-px tile)")
     parser.add_argument("--stages", action="store_true",
                         help="instead: device time per command of a frame (OpenCL profiling events)")
     parser.add_argument("--dense-only", action="store_true",
@@ -398,6 +404,7 @@ def main(argv=None) -> int:
           + (f", delays {kwargs['delays']}" if args.delays is not None else "")
           + (f", evidence every {args.evidence_row_step} row(s)" if args.evidence_row_step else "")
           + ("" if args.diagonal_evidence else ", without diagonal evidence")
+          + (f", {args.threshold_mode} threshold" if args.threshold_mode else "")
           + (", dense field only" if args.dense_only else "")
           + f"; flight over {args.texture}",
           flush=True)

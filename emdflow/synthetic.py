@@ -328,6 +328,11 @@ class CameraFlight(_RenderedFrames):
         Standard deviation of additive Gaussian sensor noise, gray levels (8-bit).
     contrast : float
         Scene contrast factor around mid-gray (1 = the photograph's own contrast).
+    shade : float
+        Light on the right half of the view, relative to the left (1 = even light): a
+        shadow fixed in the view, such as the vehicle's own or a wall's beside its path.
+        The shaded pixels are multiplied by it, so their brightness and their contrast
+        drop together; in (0, 1].
     exposure_drift : float
         Relative exposure change across ``drift_frames`` frames (e.g. 0.2 for +20 %),
         applied as a linear gain ramp; negative values darken.
@@ -366,6 +371,7 @@ class CameraFlight(_RenderedFrames):
         flow: tuple[float, float] = (1.0, 0.0),
         noise_sigma: float = 2.0,
         contrast: float = 1.0,
+        shade: float = 1.0,
         exposure_drift: float = 0.0,
         drift_frames: int = 100,
         expansion_rate: float = 0.0,
@@ -379,6 +385,9 @@ class CameraFlight(_RenderedFrames):
         self.flow = _finite_pair("flow", flow, "px/frame")
         self._init_raster(texture, width, height, supersample, noise_sigma, seed)
         self.contrast = _finite("contrast", contrast)
+        self.shade = _finite("shade", shade)
+        if not 0.0 < self.shade <= 1.0:
+            raise ValueError(f"shade={shade!r}: must be in (0, 1] (the shaded half's share of the light)")
         self.exposure_drift = _finite("exposure_drift", exposure_drift)
         self.expansion_rate = _finite("expansion_rate", expansion_rate)
         if self.expansion_rate <= -1.0:  # the image scale (1 + r)**t would reach 0
@@ -460,6 +469,8 @@ class CameraFlight(_RenderedFrames):
         image = cv2.resize(fine, (self.width, self.height), interpolation=cv2.INTER_AREA)
         gain = 1.0 + self.exposure_drift * min(1.0, t / self.drift_frames)
         image = (image - 128.0) * self.contrast + 128.0
+        if self.shade != 1.0:
+            image[:, self.width // 2 :] *= self.shade
         return _sensor_frame(image * gain, self.noise_sigma, self.seed + t)
 
 

@@ -521,3 +521,37 @@ def test_thin_lines_fire_only_the_scale_of_their_speed(flow):
         if texture == "cells-1":
             assert np.mean(values > speed) > 0.3, "edges fire the larger scales too"
     assert share_at_speed["lines-1"] > 0.97 and share_at_speed["cells-1"] < 0.7, share_at_speed
+
+
+def test_local_threshold_sees_the_shaded_half_of_the_view():
+    """A shadow over the right half of the view (light x 0.25): one threshold for the
+    whole frame, set by the lit half's contrast, leaves the shaded half nearly blind, and
+    the left/right balance then reads the shaded side slower (a corridor-centring robot
+    would steer towards it). The local threshold follows each tile's contrast: the shaded
+    half keeps most of its density and the balance stays near 0 (the truth: a pure
+    translation)."""
+    from emdflow.cues import looming_cues
+    from emdflow.params import MODELS
+
+    result = {}
+    for mode in ("adaptive", "local"):
+        lit = shaded = 0.0
+        balance = []
+        for texture, direction in (("gravel", 20.0), ("grass", 200.0), ("brick", 110.0)):
+            a = math.radians(direction)
+            est = emdflow.FlowEstimator(W, H, **{**MODELS["extended"], "threshold_mode": mode})
+            flight = CameraFlight(texture, width=W, height=H, flow=(math.cos(a), math.sin(a)), noise_sigma=2.0,
+                                  seed=3, shade=0.25)
+            for t in range(20):
+                field = est.update(flight.render(t))
+                if field.ready:
+                    seen = np.isfinite(field.u) | np.isfinite(field.v)
+                    lit += seen[:, : W // 2].mean()
+                    shaded += seen[:, W // 2 :].mean()
+                    balance.append(looming_cues(field).balance_lr)
+        result[mode] = shaded / lit, float(np.mean(balance))
+    (global_share, global_balance), (local_share, local_balance) = result["adaptive"], result["local"]
+    # premises: the frame's one threshold shows the problem
+    assert global_share < 0.35 and global_balance < -0.15, result
+    assert local_share > 0.5 and local_share > 2 * global_share, result
+    assert abs(local_balance) < 0.12 and abs(local_balance) < 0.4 * abs(global_balance), result

@@ -645,6 +645,9 @@ def test_bench_model_option_runs_the_daemons_model(monkeypatch, capsys):
     assert seen[-1] == {"delays": (1, 3)}
     assert bench.main(["--stages", "--sizes", "48x40", "--evidence-row-step", "1"]) == 0
     assert seen[-1] == {"evidence_row_step": 1} and "evidence every 1 row" in capsys.readouterr().out
+    assert bench.main(["--stages", "--sizes", "48x40", "--model", "extended", "--threshold-mode", "local"]) == 0
+    assert seen[-1] == {**MODELS["extended"], "threshold_mode": "local"}
+    assert "extended, local threshold" in capsys.readouterr().out
 
 
 def test_model_option_of_the_tools_selects_a_named_model(backend):

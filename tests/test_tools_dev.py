@@ -182,3 +182,35 @@ def test_calibrate_summary_writes_exactly_the_path_given(monkeypatch, tmp_path, 
     assert saved.is_file() and not (tmp_path / "evaluation.dat.npz").exists()
     with np.load(saved) as d:
         assert d["flow"].shape == (2, 2)
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["--frames", "0"], "--frames"),
+    (["--shade", "0"], "--shade"),
+    (["--shade", "2"], "--shade"),
+    (["--speeds", "1,nan"], "--speeds"),
+    (["--speeds", "-1"], "--speeds"),
+    (["--textures", "nosuchground"], "--textures"),
+    (["--textures", ","], "--textures"),
+    (["--modes", "tiles"], "--modes"),
+])
+def test_shade_eval_refuses_bad_options(monkeypatch, capsys, argv, option):
+    from emdflow.tools import shade_eval
+
+    monkeypatch.setattr(shade_eval, "evaluate", _never)
+    _refused(shade_eval.main, argv, capsys, option)
+
+
+def test_shade_eval_measures_both_halves_and_the_balance():
+    """The tool's rows: one per mode and speed, the local threshold seeing more of the
+    shaded half than the frame's one threshold does, and a table line per row."""
+    from emdflow.tools import shade_eval
+
+    rows = shade_eval.evaluate(speeds=(1.0,), textures=("gravel",), frames=3)
+    assert [(r["mode"], r["speed"]) for r in rows] == [("adaptive", 1.0), ("local", 1.0)]
+    adaptive, local = rows
+    for r in rows:
+        assert 0 < r["density_shaded"] < r["density_lit"] < 1 and -1 <= r["balance_lr"] <= 1
+    assert local["density_shaded"] / local["density_lit"] > 1.5 * adaptive["density_shaded"] / adaptive["density_lit"]
+    report = shade_eval.format_report(rows)
+    assert report.count("\n| adaptive | 1 |") == 1 and report.count("\n| local | 1 |") == 1

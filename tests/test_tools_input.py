@@ -13,6 +13,7 @@ import sys
 import textwrap
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import emdflow
@@ -163,12 +164,25 @@ NAN, INF = float("nan"), float("inf")
     (dict(ground_scale=0.0), "ground_scale"),
     (dict(ground_scale=INF), "ground_scale"),
     (dict(start=(NAN, 10.0)), "start"),
+    (dict(shade=0.0), "shade"),
+    (dict(shade=1.5), "shade"),
+    (dict(shade=NAN), "shade"),
 ])
 def test_camera_flight_rejects_what_it_cannot_render(kwargs, name):
     """NaN or infinity reached cv2.warpAffine, which never returned; expansion_rate -1
     divided by zero."""
     with pytest.raises(ValueError, match=name):
         CameraFlight("gravel", width=32, height=24, **kwargs)
+
+
+def test_camera_flight_shades_the_right_half_of_the_view():
+    """``shade`` multiplies the right half's light: its brightness and contrast drop by the
+    same factor; the left half is the flight's own."""
+    lit = CameraFlight("gravel", width=64, height=48, noise_sigma=0).render(3).astype(float)
+    shaded = CameraFlight("gravel", width=64, height=48, noise_sigma=0, shade=0.25).render(3).astype(float)
+    assert np.array_equal(lit[:, :32], shaded[:, :32])
+    assert np.abs(shaded[:, 32:] - 0.25 * lit[:, 32:]).max() <= 0.5  # (rounded to gray levels)
+    assert shaded[:, 32:].std() < 0.3 * lit[:, 32:].std()
 
 
 _FAR_FLIGHTS = textwrap.dedent("""
