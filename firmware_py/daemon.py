@@ -698,9 +698,12 @@ class Daemon:
             # (and a source that waits for its frames where the loop cannot see how long)
             self.mode = choose_threading(self.config.daemon.threading,
                                          live=self.live or paced_slow or self._waits_in_read)
+            engine = f"{self.config.engine.backend}, {self.config.engine.model} model"
+            if params is not None:  # (the threshold the model or [engine] threshold_mode chose)
+                engine += f", {params.threshold_mode} threshold"
             log.info("source %s: %dx%d @ %g fps, focal length %.1f px; engine %s; link %s %s @ %d baud; %s",
                      self.config.source.uri, self.width, self.height, self.fps, self.focal_length_px,
-                     self.config.engine.backend, self.config.link_autopilot(), self.config.link.port,
+                     engine, self.config.link_autopilot(), self.config.link.port,
                      self.config.link.baud, self.mode)
             self.min_quality = self.config.min_quality()
             if self.min_quality:

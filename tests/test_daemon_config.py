@@ -211,6 +211,27 @@ def test_cli_help_lists_exactly_the_documented_flags():
                      "--protocol", "--focal-length-px", "--frames", "--realtime", "--demo", "--version"}
 
 
+def test_engine_threshold_mode_overrides_the_models(tmp_path):
+    """``[engine] threshold_mode = "local"`` gives either model the local threshold, with
+    its tile side; unset keeps the model's own; a mode or tile it does not know is a
+    configuration error naming the key."""
+    import emdflow
+
+    local = load_config(_write(tmp_path, '[engine]\nthreshold_mode = "local"\nthreshold_tile = 128\n')).engine
+    options = local.estimator_options()
+    assert options["threshold_mode"] == "local" and options["threshold_tile"] == 128
+    assert options["delays"] == (1, 2, 4)  # still the extended model
+    est = emdflow.FlowEstimator(320, 240, backend="numpy", **options)
+    assert est.params.threshold_tiles(320, 240) == (2, 3)
+    paper = load_config(_write(tmp_path, '[engine]\nmodel = "paper"\nthreshold_mode = "local"\n')).engine
+    assert paper.estimator_options() == {"threshold": 5.0, "threshold_mode": "local", "threshold_tile": 64}
+    own = load_config(_write(tmp_path, '[engine]\nthreshold_tile = 128\n')).engine.estimator_options()
+    assert own["threshold_mode"] == "adaptive" and "threshold_tile" not in own
+    for text, key in (('threshold_mode = "tiles"', "threshold_mode"), ("threshold_tile = 100", "threshold_tile")):
+        with pytest.raises(ConfigError, match=key):
+            load_config(_write(tmp_path, f"[engine]\n{text}\n"))
+
+
 def test_engine_model_selects_the_estimator_options(tmp_path):
     import emdflow
 
