@@ -446,6 +446,14 @@ def test_a_table_is_selected_per_channel_set():
         assert z["prob_diagonal"].shape == z["prob"].shape
         assert not np.array_equal(z["prob_diagonal"], z["prob"])
     assert "prob_diagonal" not in np.load(CALIBRATION_FILE).files
+    # the local threshold has an edge table of its own (the same channels, made with its
+    # flights); its line-ground table is the adaptive one's
+    local = EngineParams(**dict(EXTENDED, threshold_mode="local"))
+    table = calibration_for(local)
+    assert table is not None and table.name == "summary_calibration_extended_local_diagonal.npz"
+    assert str(np.load(table)["threshold_mode"]) == "local"
+    assert calibration_for(EngineParams(**EXTENDED)).name == "summary_calibration_extended_diagonal.npz"
+    assert calibration_for(local, "lines") == calibration_for(EngineParams(**EXTENDED), "lines")
 
 
 # ---- line ground: a second table, measured over grids of thin bright lines ----
@@ -1004,6 +1012,40 @@ def test_calibration_flights_take_the_noise_range(tmp_path, capsys):
         cs.collect(1, str(tmp_path / "y.npz"), noise_range=(2.0, 1.0))
 
 
+def test_calibration_flights_take_the_threshold_mode(tmp_path, capsys):
+    """``calibrate_summary collect --threshold-mode local`` flies the model with the local
+    threshold (same seed, same flights, other states) and records it; ``fit`` names the
+    table of such flights apart (``summary_calibration_extended_local_diagonal.npz``), so
+    :func:`calibration_for` prefers it for the local threshold and the adaptive one for
+    the model's own; files of both modes are refused together."""
+    from emdflow.reference import STAT_FIRST_CHANGED
+    from emdflow.tools import calibrate_summary as cs
+
+    runs = {}
+    for mode in ("adaptive", "local"):
+        out = tmp_path / f"{mode}.npz"
+        argv = ["collect", "--flights", "2", "--frames", "1", "--seed", "3", "--model", "extended",
+                "--contrast-range", "0.3,0.3", "--out", str(out)]
+        cs.main(argv + (["--threshold-mode", mode] if mode == "local" else []))
+        with np.load(out) as d:
+            assert str(d["threshold_mode"]) == mode
+            runs[mode] = (d["flow"].copy(), d["stats"][:, STAT_FIRST_CHANGED:].copy())
+    assert np.array_equal(runs["adaptive"][0], runs["local"][0])
+    assert not np.array_equal(runs["adaptive"][1], runs["local"][1])
+    assert cs.stored_threshold_mode([tmp_path / "local.npz"], "extended") == "local"
+    with pytest.raises(SystemExit, match="mix threshold modes"):
+        cs.stored_threshold_mode([tmp_path / "local.npz", tmp_path / "adaptive.npz"], "extended")
+    # a file made before the mode was recorded flew the model's own
+    with np.load(tmp_path / "adaptive.npz") as d:
+        np.savez(tmp_path / "old.npz", **{k: d[k] for k in d.files if k != "threshold_mode"})
+    assert cs.stored_threshold_mode([tmp_path / "old.npz", tmp_path / "adaptive.npz"], "extended") == "adaptive"
+    assert cs.calibration_path("extended", threshold_mode="local").name == \
+        "summary_calibration_extended_local_diagonal.npz"
+    assert cs.calibration_path("extended", "lines", threshold_mode="adaptive") == cs.calibration_path(
+        "extended", "lines")
+    assert cs.calibration_path("paper", threshold_mode="fixed").name == "summary_calibration_diagonal.npz"
+
+
 def test_calibration_flights_take_the_evidence_density(tmp_path):
     """``calibrate_summary collect --evidence-row-step N`` samples the stored histograms that
     way (same seed, same flights: more evidence with every row)."""
@@ -1039,6 +1081,14 @@ def test_evaluation_flights_take_the_ground(monkeypatch, tmp_path, capsys):
         cs.main(["evaluate", "--textures", "moon,no-such-ground"])
     err = capsys.readouterr().err
     assert "--textures" in err and "no-such-ground" in err
+    # stored flights keep the threshold mode they were flown with: scoring them as another
+    # is refused (the flag would be silently ignored), the same mode is fine
+    with np.load(out) as d:
+        assert str(d["threshold_mode"]) == "fixed"
+    with pytest.raises(SystemExit):
+        cs.main(["evaluate", "--data", str(out), "--threshold-mode", "local"])
+    assert "were flown with fixed threshold" in capsys.readouterr().err
+    cs.main(["evaluate", "--data", str(out), "--threshold-mode", "fixed"])
 
 
 def test_evaluation_tells_a_search_miss_from_a_table_that_prefers_the_wrong_answer():
@@ -1080,7 +1130,7 @@ def test_fit_writes_a_line_ground_table(monkeypatch, tmp_path):
              stats=np.stack([_stats(EXT_PARAMS, gradient=8.0)] * len(flows)))
     written = {}
     monkeypatch.setattr(cs, "calibration_path",
-                        lambda model, ground="edges", diagonal=False:
+                        lambda model, ground="edges", diagonal=False, threshold_mode=None:
                         written.setdefault(ground, tmp_path / f"{ground}.npz"))
     cs.main(["fit", "--model", "extended", "--ground", "lines", "--write", str(data)])
     z = np.load(written["lines"])
@@ -1109,7 +1159,7 @@ def test_fit_writes_the_diagonal_tables(monkeypatch, tmp_path):
     np.savez(data, hist=hist.astype(np.int32), flow=np.array(flows), model=np.array("paper"),
              stats=np.stack([_stats(params)] * len(flows)))
     written = {}
-    monkeypatch.setattr(cs, "calibration_path", lambda model, ground="edges", diagonal=True:
+    monkeypatch.setattr(cs, "calibration_path", lambda model, ground="edges", diagonal=True, threshold_mode=None:
                         written.setdefault((model, ground, diagonal), tmp_path / "table.npz"))
     cs.main(["fit", "--write", str(data)])
     assert list(written) == [("paper", "edges", True)]

@@ -80,6 +80,19 @@ channel, adaptive threshold, brightness compensation) has its own table, ``emdfl
     python -m emdflow.tools.calibrate_summary evaluate --model extended --random --drift 0.2
     python -m emdflow.tools.calibrate_summary evaluate --model extended --random --drift -0.2
 
+The extended model with the **local threshold** (``threshold_mode='local'``, README
+"Shadows: the local threshold") has an edge table of its own,
+``emdflow/summary_calibration_extended_local_diagonal.npz``: the eight sets above flown
+with ``--threshold-mode local`` (``collect`` records the mode in its files, and ``fit``
+names the table after it; ~20 minutes of collection here), then fitted as above. The
+summary prefers a table made with the engine's threshold mode; the local threshold has no
+line-ground table of its own and reads the adaptive one's::
+
+    L="python -m emdflow.tools.calibrate_summary collect --model extended --threshold-mode local"
+    # the eight commands above with $L in place of "... collect --model extended", then
+    python -m emdflow.tools.calibrate_summary fit --model extended /tmp/emdflow_local_ext[1-8].npz --write
+    python -m emdflow.tools.calibrate_summary evaluate --model extended --random --threshold-mode local
+
 The extended model also has a **line-ground table**,
 ``emdflow/summary_calibration_extended_lines.npz`` (``fit --ground lines``): the same
 measurement over grids of thin bright lines (``lines-<seed>-<angle>``,
@@ -145,7 +158,7 @@ from pathlib import Path
 
 import numpy as np
 
-from emdflow.params import GRADIENT_CLASS_STEPS, ORIENTATION_BINS
+from emdflow.params import GRADIENT_CLASS_STEPS, ORIENTATION_BINS, THRESHOLD_MODES
 from emdflow.params import MODELS as _MODELS
 from emdflow.tools import ToolError, frame_size_problem, interp_weights, output_problem, texture_names_problem
 
@@ -179,17 +192,36 @@ COLLECT_RANGES = {
 }
 
 
-def model_options(model: str, diagonal: bool = True) -> dict:
+def model_options(model: str, diagonal: bool = True, threshold_mode: str | None = None) -> dict:
     """The ``FlowEstimator`` keywords of ``model`` with ``diagonal_evidence=diagonal`` (the
     default, on: the flights and tables of the diagonal detectors' evidence; off: those of
-    the horizontal and vertical detectors alone, the former tables)."""
-    return dict(MODELS[model], diagonal_evidence=bool(diagonal))
+    the horizontal and vertical detectors alone, the former tables) and ``threshold_mode``
+    instead of the model's own (None: the model's; e.g. ``'local'``, whose tables
+    :func:`calibration_path` names apart)."""
+    options = dict(MODELS[model], diagonal_evidence=bool(diagonal))
+    if threshold_mode is not None:
+        options["threshold_mode"] = threshold_mode
+    return options
 
 
-def model_params(model: str, diagonal: bool = True):
+def model_params(model: str, diagonal: bool = True, threshold_mode: str | None = None):
     from emdflow.params import EngineParams
 
-    return EngineParams(**model_options(model, diagonal))
+    return EngineParams(**model_options(model, diagonal, threshold_mode))
+
+
+def stored_threshold_mode(paths, model: str) -> str:
+    """The threshold mode the stored flights of ``paths`` (``collect`` files of ``model``)
+    were flown with; a file that does not record one (made before ``--threshold-mode``)
+    flew the model's own. The files must agree."""
+    own = MODELS[model].get("threshold_mode", "fixed")
+    modes = set()
+    for path in paths:
+        with np.load(path) as z:
+            modes.add(str(z["threshold_mode"]) if "threshold_mode" in z.files else own)
+    if len(modes) > 1:
+        raise SystemExit(f"the calibration files mix threshold modes: {sorted(modes)}")
+    return modes.pop() if modes else own
 
 
 def _stored_shape(path, name: str) -> tuple[int, ...]:
@@ -239,10 +271,14 @@ def has_diagonal(data) -> bool:
     return kinds == {True}
 
 
-def calibration_path(model: str, ground: str = "edges", diagonal: bool = True) -> Path:
+def calibration_path(model: str, ground: str = "edges", diagonal: bool = True,
+                     threshold_mode: str | None = None) -> Path:
     """Where ``fit --write`` stores the table of ``model`` for ``ground`` (summary.py finds
-    it there): ``summary_calibration[_<model>][_lines][_diagonal].npz``."""
+    it there): ``summary_calibration[_<model>][_<threshold mode>][_lines][_diagonal].npz``,
+    the threshold mode named only when it is not the model's own (``_local``)."""
     name = "summary_calibration" + ("" if model == "paper" else f"_{model}")
+    if threshold_mode is not None and threshold_mode != MODELS[model].get("threshold_mode", "fixed"):
+        name += f"_{threshold_mode}"
     name += "" if ground == "edges" else f"_{ground}"
     name += "_diagonal" if diagonal else ""
     return Path(__file__).resolve().parents[1] / (name + ".npz")
@@ -260,8 +296,9 @@ def _checked_noise(lo, hi, name: str) -> tuple[float, float]:
 def collect(flights: int, out: str, frames: int = 7, seed: int = 20240601, width=320, height=240,
             textures=CALIBRATION_TEXTURES, backend: str = "opencl", scale_range=(1.0, 1.0),
             model: str = "paper", contrast_range=None, evidence_row_step: int = 0,
-            noise_range=(1.0, 3.0), diagonal: bool = True):
-    """Render ``flights`` random flights; store every ready frame's histogram and truth.
+            noise_range=(1.0, 3.0), diagonal: bool = True, threshold_mode: str | None = None):
+    """Render ``flights`` random flights; store every ready frame's histogram and truth
+    (and the threshold mode flown: ``threshold_mode``, or the model's own).
 
     Each flight draws a direction, a speed (log-uniform over the model's range, 0.4..18
     px/frame for the paper's model), a sensor noise σ (uniform in ``noise_range``, gray
@@ -280,7 +317,7 @@ def collect(flights: int, out: str, frames: int = 7, seed: int = 20240601, width
     from emdflow.synthetic import CameraFlight, load_texture
 
     rng = np.random.default_rng(seed)
-    est = FlowEstimator(width, height, backend=backend, **model_options(model, diagonal),
+    est = FlowEstimator(width, height, backend=backend, **model_options(model, diagonal, threshold_mode),
                         evidence_row_step=evidence_row_step)
     ranges = dict(COLLECT_RANGES[model])
     if contrast_range is not None:
@@ -330,7 +367,8 @@ def collect(flights: int, out: str, frames: int = 7, seed: int = 20240601, width
                   flush=True)
     with open(out, "wb") as fh:  # exactly ``out`` (a path without .npz would get one appended)
         np.savez_compressed(fh, hist=np.array(hists), flow=np.array(flows), stats=np.array(stats),
-                            texture=np.array(names), model=np.array(model))
+                            texture=np.array(names), model=np.array(model),
+                            threshold_mode=np.array(est.params.threshold_mode))
     print(f"wrote {len(hists)} frames to {out}", file=sys.stderr)
 
 
@@ -515,7 +553,8 @@ def _frame_chunks(data, model: str, params, samples: int, chunk: int = FIT_CHUNK
 
 def fit_main(data, write, model="paper", ground="edges"):
     diagonal = has_diagonal(data)
-    params = model_params(model, diagonal)
+    mode = stored_threshold_mode(data, model)  # (a table for the mode its flights were flown with)
+    params = model_params(model, diagonal, mode)
     samples = params.contrast_samples(320, 240)  # collect renders 320x240
     u_offset, u_count = U_GRID[model]
     edges = CONTRAST_EDGES[model]
@@ -566,14 +605,15 @@ def fit_main(data, write, model="paper", ground="edges"):
             P, tot = prob_all, tot.sum(axis=-4)
         arrays["prob" + suffix] = P.astype(np.float32)
         arrays["weight" + suffix] = tot.astype(np.float32)
-    out = calibration_path(model, ground, diagonal)
+    out = calibration_path(model, ground, diagonal, mode)
     if write:
         extra = {}
         if GRADIENT_CLASS_TABLES[model]:
             extra["gradient_class_steps"] = np.asarray(GRADIENT_CLASS_STEPS, np.int64)
+        # (the paper's table too: the summary prefers a table of the engine's threshold mode)
+        extra.update(threshold_mode=np.array(params.threshold_mode))
         if model != "paper":
-            extra.update(channels=np.array(params.channels, np.int64),
-                         threshold_mode=np.array(params.threshold_mode), model=np.array(model))
+            extra.update(channels=np.array(params.channels, np.int64), model=np.array(model))
         if edges:
             extra.update(contrast_edges=np.asarray(edges, np.float64))
         if ground != "edges":
@@ -606,7 +646,7 @@ def misfit_baseline(data, model: str, frames: int = MISFIT_FRAMES, seed: int = M
     from emdflow.reference import STAT_FIRST_CHANGED
     from emdflow.summary import SummaryOptions, calibration_for
 
-    params = model_params(model, has_diagonal(data))
+    params = model_params(model, has_diagonal(data), stored_threshold_mode(data, model))
     if calibration_for(params, ground) is None:
         # summarize() would read another table and the baseline would be that table's
         raise SystemExit(f"misfit baseline: the {model!r} model has no {ground} table to measure")
@@ -652,7 +692,9 @@ def write_misfit(data, model: str, path: Path | None = None, ground: str = "edge
     for ``ground`` (``path``: another copy of it)."""
     import emdflow.summary as summary
 
-    path = calibration_path(model, ground, has_diagonal(data)) if path is None else Path(path)
+    if path is None:
+        path = calibration_path(model, ground, has_diagonal(data), stored_threshold_mode(data, model))
+    path = Path(path)
     with np.load(path) as z:
         table = {k: z[k] for k in z.files if k not in ("misfit_speeds", "misfit_baseline")}
     # the summary reads the tables as they are on disk now (the deviance does not depend
@@ -693,7 +735,8 @@ def _directions(offset, random_set, speeds=EVALUATION_SPEEDS, textures=EVALUATIO
 def render_evaluation(offset: float = 0.0, random_set: bool = False, frames: int = 6,
                       backend: str = "opencl", width=320, height=240, model: str = "paper",
                       contrast: float = 1.0, drift: float = 0.0, evidence_row_step: int = 0,
-                      noise: float = 2.0, textures=EVALUATION_TEXTURES, diagonal: bool = True):
+                      noise: float = 2.0, textures=EVALUATION_TEXTURES, diagonal: bool = True,
+                      threshold_mode: str | None = None):
     """Flights over the evaluation textures: the model's speeds (9 for the paper's model,
     10 from 0.25 px/frame for the extended one) × 4 textures × 8 directions (multiples of
     45° plus ``offset`` radians, or random directions), sensor noise σ = ``noise`` gray
@@ -707,7 +750,7 @@ def render_evaluation(offset: float = 0.0, random_set: bool = False, frames: int
     from emdflow import FlowEstimator
     from emdflow.synthetic import CameraFlight, load_texture
 
-    est = FlowEstimator(width, height, backend=backend, **model_options(model, diagonal),
+    est = FlowEstimator(width, height, backend=backend, **model_options(model, diagonal, threshold_mode),
                         evidence_row_step=evidence_row_step)
     warm = est.params.history_frames
     speeds = MODEL_EVALUATION_SPEEDS[model]
@@ -739,7 +782,8 @@ def render_evaluation(offset: float = 0.0, random_set: bool = False, frames: int
             cell += 1
     return dict(hist=np.array(hists), stats=np.array(stats), flow=np.array(flows),
                 shape=np.array([height, width]), frame_index=warm + 1, model=np.array(model),
-                flight_frames=np.array(frames), texture=np.array(names))
+                flight_frames=np.array(frames), texture=np.array(names),
+                threshold_mode=np.array(est.params.threshold_mode))
 
 
 def score(data, options=None, out=print):
@@ -809,7 +853,8 @@ def _stored_fields(data):
     h, w = (int(x) for x in data["shape"])
     codes = np.zeros((h, w), np.int8)
     params = EngineParams(**model_options(str(data["model"]) if "model" in data else "paper",
-                                          np.asarray(data["hist"]).shape[1] == 4))
+                                          np.asarray(data["hist"]).shape[1] == 4,
+                                          str(data["threshold_mode"]) if "threshold_mode" in data else None))
     fields = [FlowField(codes, codes, st, hi, params, int(data["frame_index"]))
               for hi, st in zip(data["hist"], data["stats"])]
     return fields, np.asarray(data["flow"], np.float64)
@@ -980,7 +1025,7 @@ def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: 
              save: str | None = None, data: str | None = None, model: str = "paper",
              contrast: float = 1.0, drift: float = 0.0, options=None, evidence_row_step: int = 0,
              width: int = 320, height: int = 240, noise: float = 2.0,
-             textures=EVALUATION_TEXTURES, diagonal: bool = True):
+             textures=EVALUATION_TEXTURES, diagonal: bool = True, threshold_mode: str | None = None):
     """Render (or load with ``data``) the evaluation flights (``width`` × ``height`` frames,
     over ``textures``; ``diagonal``: with the diagonal detectors' evidence, the default) and
     :func:`score` them.
@@ -995,12 +1040,16 @@ def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: 
             raise ToolError(f"--data {data}: {problem}", 2)
         with np.load(data) as z:
             flights = {k: z[k] for k in z.files}
+        stored = str(flights["threshold_mode"]) if "threshold_mode" in flights else None
+        if threshold_mode is not None and threshold_mode != stored:
+            raise ToolError(f"--threshold-mode {threshold_mode}: the flights of --data {data} were flown with "
+                            f"{stored or 'the model' + chr(39) + 's own'} threshold", 2)
         label = data
     else:
         flights = render_evaluation(offset, random_set, frames, backend, width, height, model=model,
                                     contrast=contrast, drift=drift,
                                     evidence_row_step=evidence_row_step, noise=noise,
-                                    textures=textures, diagonal=diagonal)
+                                    textures=textures, diagonal=diagonal, threshold_mode=threshold_mode)
         label = "random directions" if random_set else f"offset {offset} rad"
         if (width, height) != (320, 240):
             label += f", {width}x{height}"
@@ -1015,6 +1064,8 @@ def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: 
             label += f", evidence every {evidence_row_step} row(s)"
         if not diagonal:
             label += ", without diagonal evidence"
+        if threshold_mode is not None:
+            label += f", {threshold_mode} threshold"
         if tuple(textures) != EVALUATION_TEXTURES:
             label += f", over {','.join(textures)}"
         if save:
@@ -1069,6 +1120,9 @@ def main(argv=None):
     c.add_argument("--diagonal-evidence", action=argparse.BooleanOptionalAction, default=True,
                    help="with (default) or without the diagonal detectors' evidence (EngineParams."
                         "diagonal_evidence; without: the horizontal and vertical detectors' tables)")
+    c.add_argument("--threshold-mode", choices=THRESHOLD_MODES, default=None,
+                   help="fly this threshold mode instead of the model's (EngineParams.threshold_mode; "
+                        "fit then writes the table under its own name, e.g. _extended_local_)")
     c.add_argument("--noise-range", default="1,3",
                    help="sensor noise range lo,hi of the flights, gray levels (uniform; default "
                         "1,3, as the committed tables were made)")
@@ -1092,6 +1146,8 @@ def main(argv=None):
     g.add_argument("--margins", default="0,5,10,15,20,30",
                    help="comma-separated margins to try, nats (default 0,5,10,15,20,30)")
     e = sub.add_parser("evaluate")
+    e.add_argument("--threshold-mode", choices=THRESHOLD_MODES, default=None,
+                   help="fly this threshold mode instead of the model's (its own table when one was fitted)")
     e.add_argument("--offset", type=float, default=0.3, help="direction offset, radians")
     e.add_argument("--random", action="store_true",
                    help="random directions (seeded) instead of multiples of 45° + offset")
@@ -1165,7 +1221,7 @@ def main(argv=None):
                 backend=a.backend, scale_range=scale_range, model=a.model,
                 contrast_range=contrast_range,
                 evidence_row_step=a.evidence_row_step, noise_range=noise_range,
-                diagonal=a.diagonal_evidence)
+                diagonal=a.diagonal_evidence, threshold_mode=a.threshold_mode)
     elif a.cmd == "fit":
         fit_main(a.data, a.write, a.model, a.ground)
     elif a.cmd == "misfit":
@@ -1206,7 +1262,7 @@ def main(argv=None):
         try:
             evaluate(a.offset, a.random, a.frames, a.backend, a.save, a.data, a.model, a.contrast,
                      a.drift, options, a.evidence_row_step, width, height, a.noise, textures,
-                     a.diagonal_evidence)
+                     a.diagonal_evidence, a.threshold_mode)
         except ToolError as exc:
             ap.error(str(exc))
 
