@@ -148,10 +148,11 @@ def gain_compensated_change(p_now: np.ndarray, p_before: np.ndarray, k: int, rat
     return box_sums(p_now.astype(np.int64) * 256 - p_before.astype(np.int64) * int(ratio_q), k)
 
 
-def ternary_states(change: np.ndarray, box_threshold: int) -> np.ndarray:
+def ternary_states(change: np.ndarray, box_threshold) -> np.ndarray:
     """Ternary template-model states (paper §2): +1 if ``change > T``, −1 if ``< −T``, else 0.
 
-    ``box_threshold`` is ``floor(θ̂ · k²)`` with ``θ̂`` the fixed-point θ (see
+    ``box_threshold`` (an int, or an array of the change's shape for the local threshold)
+    is ``floor(θ̂ · k²)`` with ``θ̂`` the fixed-point θ (see
     :meth:`EngineParams.box_threshold`), so the test is exactly "mean receptor change > θ̂
     gray levels".
     """
@@ -303,7 +304,7 @@ def summary_statistics(
     step_states: np.ndarray | None = None,
     gains_q: dict | None = None,
     diagonal_codes: tuple[np.ndarray, np.ndarray] | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple:
     """Per-frame evidence for the summary (identical in both backends).
 
     * counts of horizontal / vertical detections;
@@ -525,8 +526,8 @@ class ReferenceEngine:
             gains_q, diagonal,
         )
         self.last_theta_q = self.theta_q
-        #: each tile's contrast sum of this frame ('local'; one tile otherwise: zero)
-        self.tile_contrast = tile_contrast
+        #: each tile's contrast sum of this frame ('local'; None otherwise, as in OpenCL)
+        self.tile_contrast = tile_contrast if prm.threshold_mode == "local" else None
         W, H = self.width, self.height
         self.theta_q = prm.next_threshold_q(int(stats[STAT_CONTRAST]), prm.contrast_samples(W, H),
                                             tile_contrast, prm.tile_contrast_samples(W, H))

@@ -701,6 +701,8 @@ class Daemon:
             engine = f"{self.config.engine.backend}, {self.config.engine.model} model"
             if params is not None:  # (the threshold the model or [engine] threshold_mode chose)
                 engine += f", {params.threshold_mode} threshold"
+                if params.threshold_mode == "local":
+                    engine += f" ({params.threshold_tile} px tiles)"
             log.info("source %s: %dx%d @ %g fps, focal length %.1f px; engine %s; link %s %s @ %d baud; %s",
                      self.config.source.uri, self.width, self.height, self.fps, self.focal_length_px,
                      engine, self.config.link_autopilot(), self.config.link.port,

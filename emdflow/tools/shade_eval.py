@@ -16,7 +16,7 @@ threshold mode, and prints per speed:
   corridor-centring controller would take for a farther wall and steer towards;
 * the summary's median relative error (a quality-0 frame counts as 100 %)::
 
-    python -m emdflow.tools.shade_eval                       # ~40 s on 2 cores (OpenCL)
+    python -m emdflow.tools.shade_eval                       # ~10 s on 2 cores (OpenCL)
     python -m emdflow.tools.shade_eval --shade 0.5 --speeds 1,4 --modes adaptive,local
 
 Everything but :func:`main` is a pure function of its arguments.
