@@ -429,13 +429,14 @@ class EngineParams:
         """
         if self.threshold_mode == "fixed" or (sampled <= 0 and self.threshold_mode == "adaptive"):
             return self.threshold_q(self.threshold)
-        whole = self.adaptive_gain * contrast_sum / sampled if sampled > 0 else self.threshold
+        # (gain times the mean, in that order: the adaptive threshold as it always was)
+        whole = self.adaptive_gain * (contrast_sum / sampled) if sampled > 0 else self.threshold
         if self.threshold_mode == "adaptive":
             return self.threshold_q(min(self.threshold_max, max(self.threshold_min, whole)))
         sums = np.asarray(tile_sums, np.float64)
         samples = np.asarray(tile_samples, np.float64)
         with np.errstate(invalid="ignore", divide="ignore"):
-            theta = np.where(samples > 0, self.adaptive_gain * sums / samples, whole)
+            theta = np.where(samples > 0, self.adaptive_gain * (sums / samples), whole)
         theta = np.clip(theta, self.threshold_min, self.threshold_max)
         return np.rint(theta * 256).astype(np.int64)  # (half to even, as threshold_q's round)
 

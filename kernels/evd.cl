@@ -141,9 +141,9 @@ __kernel void velocity_detectors(__global const uint *planes, __global char *res
             for (int w = 0; w < 8; w++) {
                 const int y = (f + w) / NWP, i = f + w - y * NWP - 1;
                 if (y % EVIDENCE_ROW_STEP == 0 && y < H && i >= 0)
-                    bin_detections(positions, hist, sat, P, bright, t, THETA_AT(theta_q, theta_tiles, y, i), axis, y, i, o[w], o[w + OUT_PLANE],
-                                   o[w + 2 * OUT_PLANE], o[w + 3 * OUT_PLANE], o[w + 4 * OUT_PLANE],
-                                   &pos_run, &hist_run);
+                    bin_detections(positions, hist, sat, P, bright, t, THETA_AT(theta_q, theta_tiles, y, i),
+                                   axis, y, i, o[w], o[w + OUT_PLANE], o[w + 2 * OUT_PLANE],
+                                   o[w + 3 * OUT_PLANE], o[w + 4 * OUT_PLANE], &pos_run, &hist_run);
             }
             run_flush(positions, &pos_run);
             run_flush(hist, &hist_run);
@@ -169,8 +169,8 @@ __kernel void velocity_detectors(__global const uint *planes, __global char *res
         for (int w = 0; w < 8; w++) {
             const int y = (f + w) / NWP, i = f + w - y * NWP - 1;
             if (y % EVIDENCE_ROW_STEP == 0 && y < H && i >= 0)
-                bin_detections(0, hist, sat, P, bright, t, THETA_AT(theta_q, theta_tiles, y, i), axis, y, i, b0.w[w], b1.w[w], b2.w[w],
-                               b3.w[w], bs.w[w], &pos_run, &hist_run);
+                bin_detections(0, hist, sat, P, bright, t, THETA_AT(theta_q, theta_tiles, y, i), axis, y, i,
+                               b0.w[w], b1.w[w], b2.w[w], b3.w[w], bs.w[w], &pos_run, &hist_run);
         }
         run_flush(hist, &hist_run);
     }

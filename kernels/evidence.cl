@@ -97,8 +97,9 @@ __attribute__((always_inline)) inline void count_positions(__global int *positio
 }
 
 /* Bin the detections of word i of row y (theta_q: the threshold there; bit planes
- * b0..b3 = channel index c + 1, bs = sign) of one axis (0 horizontal, 1 vertical, 2 and 3 the diagonals B = A + k (1, 1) and
- * A + k (1, -1), which have no position histogram) into the position and orientation
+ * b0..b3 = channel index c + 1, bs = sign) of one axis (0 horizontal, 1 vertical, 2 and 3
+ * the diagonals B = A + k (1, 1) and A + k (1, -1), which have no position histogram)
+ * into the position and orientation
  * histograms, channel by channel: a
  * channel's detections share its scale, delay and table, and their positions are counted
  * by popcount. The gradient of a scale-1 receptor image is the prefiltered image's own
