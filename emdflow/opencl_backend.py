@@ -667,7 +667,7 @@ class OpenCLEngine:
         self._cl.enqueue_fill_buffer(self.queue, self.planes, np.uint8(0), 0, self.planes.size)
         self.queue.finish()
         self.t = 0
-        self.theta_q = self.params.threshold_q(self.params.threshold)  # threshold of the next frame
+        self.theta_q = self.params.first_threshold_q(self.layout.W, self.layout.H)  # threshold of the next frame
 
     #: result buffers the frames take in turn where the host shares their memory
     RESULT_SLOTS = 2
@@ -697,7 +697,7 @@ class OpenCLEngine:
         self._set_states(6, t)
         # (the local threshold's tiles are in theta_buf; the kernels then take the largest
         # as the frame's, which only chooses the states' arithmetic: see states.cl)
-        theta_q = int(np.max(self.theta_q))
+        theta_q = int(self.theta_q.max()) if lay.LOCAL else int(self.theta_q)
         self._set_states(7, theta_q)
         self._set_evd(5, t)
         self._set_evd(6, theta_q)
@@ -718,11 +718,11 @@ class OpenCLEngine:
             upload = ()
         else:
             upload = (cl.enqueue_copy(q, self.frame_buf, np.ascontiguousarray(frame), is_blocking=False),)
-        if lay.LOCAL:  # the tiles' thresholds (one value for all before the first frame)
+        if lay.LOCAL:  # the tiles' thresholds
             if self._theta_host is not None:
-                self._theta_host[:] = np.ravel(self.theta_q)
+                self._theta_host[:] = self.theta_q.ravel()
             else:
-                self._theta_staging[:] = np.ravel(self.theta_q)
+                self._theta_staging[:] = self.theta_q.ravel()
                 # (not among the frame's traced commands: a few bytes)
                 cl.enqueue_copy(q, self.theta_buf, self._theta_staging, is_blocking=False)
         events = (

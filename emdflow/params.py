@@ -454,10 +454,19 @@ class EngineParams:
         rows = np.arange(2, int(height) - 1, 2)  # even interior rows
         cols = np.arange(1, int(width) - 1)
         t = self.threshold_tile if self.threshold_mode == "local" else max(int(width), int(height))
-        ny, nx = -(-int(height) // t), -(-int(width) // t)
+        ny, nx = self.threshold_tiles(width, height)
         per_row = np.bincount(rows // t, minlength=ny)[:ny]
         per_col = np.bincount(cols // t, minlength=nx)[:nx]
         return np.outer(per_row, per_col).astype(np.int64)
+
+    def first_threshold_q(self, width: int, height: int):
+        """The threshold of the first frame (and after a reset): ``threshold`` as
+        :meth:`threshold_q`, for ``'local'`` in every tile (an int64 array, shape
+        :meth:`threshold_tiles`)."""
+        q = self.threshold_q(self.threshold)
+        if self.threshold_mode == "local":
+            return np.full(self.threshold_tiles(width, height), q, np.int64)
+        return q
 
     def theta_map(self, theta_q, width: int, height: int):
         """The fixed-point threshold at each pixel: ``theta_q`` itself (an int) unless it is

@@ -449,10 +449,13 @@ class ReferenceEngine:
 
     def __init__(self, width: int, height: int, params: EngineParams):
         self.width, self.height, self.params = int(width), int(height), params
+        # pixels the contrast statistic samples, in the frame and per tile (made once)
+        self._contrast_samples = params.contrast_samples(self.width, self.height)
+        self._tile_samples = params.tile_contrast_samples(self.width, self.height)
         self.reset()
 
     def reset(self) -> None:
-        self.theta_q = self.params.threshold_q(self.params.threshold)  # threshold of the next frame
+        self.theta_q = self.params.first_threshold_q(self.width, self.height)  # threshold of the next frame
         self._p_history: list[np.ndarray] = []  # newest last, up to max_delay + 1
         self._brightness: list[int] = []  # their pixel sums (brightness compensation)
         self._state_history = {ch: [] for ch in self.params.channels}  # newest last
@@ -528,9 +531,8 @@ class ReferenceEngine:
         self.last_theta_q = self.theta_q
         #: each tile's contrast sum of this frame ('local'; None otherwise, as in OpenCL)
         self.tile_contrast = tile_contrast if prm.threshold_mode == "local" else None
-        W, H = self.width, self.height
-        self.theta_q = prm.next_threshold_q(int(stats[STAT_CONTRAST]), prm.contrast_samples(W, H),
-                                            tile_contrast, prm.tile_contrast_samples(W, H))
+        self.theta_q = prm.next_threshold_q(int(stats[STAT_CONTRAST]), self._contrast_samples,
+                                            tile_contrast, self._tile_samples)
         self.frame_count += 1
         return u_code, v_code, stats, hist, positions
 
