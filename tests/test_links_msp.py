@@ -238,3 +238,68 @@ def test_blind_keeps_inav_alive_with_quality_zero(peer):
     # INAV times out after 0.2 s: 10 Hz keep-alive after 0.15 s.
     assert len(blind) == pytest.approx(19, abs=2)
     assert all(q == 0 and mx == 0 and my == 0 for q, mx, my in blind)
+
+
+def _arrivals(peer, link, frame_times_us, end_us, *, jitter_us=0, seed=0):
+    """Feed frames (capture time = host time + a random jitter up to ``jitter_us``) and
+    service the link every 10 ms of host time until ``end_us``; returns (host time read,
+    quality) of every MSP flow report, as the autopilot's end of the pty saw them."""
+    import random
+
+    from firmware_py.links import FlowSample
+
+    rng = random.Random(seed)
+    out, frames, t = [], list(frame_times_us), frame_times_us[0]
+
+    def read(at):
+        out.extend((at, q) for q, _, _ in optic_flow(peer.read()))
+
+    while t <= end_us:
+        while frames and frames[0] <= t:
+            at = frames.pop(0)
+            link.submit(FlowSample(timestamp_us=at + rng.randint(0, jitter_us), capture_host_us=at, flow_x=0.0,
+                                   flow_y=0.5, quality=200), at)
+            read(at)
+        link.service(t)
+        read(t)
+        t += 10_000
+    return out
+
+
+@pytest.mark.parametrize("setting", [{"message_rate_hz": 7.0}, {"baud": 2400}])
+def test_a_camera_that_stops_between_reports_keeps_inav_fed(peer, setting):
+    """At the lowest message rates (7-8 Hz) the last report can precede the camera's last
+    frame by almost a period: the keep-alive must go out before INAV's 200 ms timeout
+    counted from that report, not 0.15 s after the last frame (270-290 ms without a
+    message before). Whatever the phase of the stop, the gap stays below 200 ms."""
+    worst = 0
+    for n in range(100, 116):  # the camera stops at every phase of the report period
+        link = open_link(LinkConfig(port=peer.path, autopilot="inav", focal_length_px=400.0, **setting))
+        try:
+            start = host_us()
+            frames = [start + i * 10_000 for i in range(n)]
+            reports = _arrivals(peer, link, frames, frames[-1] + 600_000)
+        finally:
+            link.close()
+            peer.read()
+        assert link.message_rate_hz <= 8.0
+        times = [at for at, _ in reports]
+        worst = max(worst, max(b - a for a, b in zip(times, times[1:])))
+        assert [q for _, q in reports][-3:] == [0, 0, 0]  # blind: quality-0 keep-alives
+    assert worst < 200_000, worst
+
+
+def test_jittery_frames_at_the_lowest_rate_send_no_keepalive(peer):
+    """The keep-alive before the timeout waits for an overdue frame: a steady 30 fps stream
+    with capture jitter, reported at 7 Hz (a report can wait a frame past 150 ms), keeps
+    every report after the start marker good."""
+    link = open_link(LinkConfig(port=peer.path, autopilot="inav", focal_length_px=400.0, message_rate_hz=7.0))
+    try:
+        start = host_us()
+        frames = [start + round(i * 33_333) for i in range(90)]
+        reports = _arrivals(peer, link, frames, frames[-1], jitter_us=3_000, seed=2)
+    finally:
+        link.close()
+    qualities = [q for _, q in reports]
+    assert len(qualities) > 15 and qualities[0] == 0
+    assert all(q > 0 for q in qualities[1:]), qualities

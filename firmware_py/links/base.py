@@ -38,7 +38,9 @@ Timing model
   up to the longest interval a report may span) gets :data:`SLOW_STREAM_WAIT` times its
   typical interval before the keep-alive starts (no later than :data:`TIMEOUT_MARGIN_S`
   before the autopilot's timeout unless the stream itself is that slow): it is slow, not
-  blind.
+  blind. And whatever the stream, a keep-alive also goes out :data:`TIMEOUT_MARGIN_S`
+  before the timeout counted from the last *message* once the next frame is overdue: at a
+  low message rate the last report can precede the last frame by a whole period.
 * **Where the autopilot's interval starts.** INAV and ArduPilot's MSP driver divide a
   message's counts by the time since the *previous message*, and PX4 integrates its own gyro
   from the previous message on; so any message starts the autopilot's next interval.
@@ -614,11 +616,26 @@ class FlowLink:
         return FlowInterval(start_us=end_us - span_us, end_us=end_us, integrated_x=0.0, integrated_y=0.0,
                             sum_u_px=0.0, sum_v_px=0.0, quality=0, frame_count=0)
 
+    def _timeout_near(self, now: int, since_submit: int) -> bool:
+        """Whether the autopilot's timeout is :data:`TIMEOUT_MARGIN_S` away with the next
+        frame overdue (:data:`SLOW_STREAM_WAIT` of the typical interval): the stream has
+        stalled before it counts as blind, so a keep-alive goes out now. Blindness is judged
+        from the last frame, the timeout from the last message: at a low message rate (7 Hz,
+        the floor) the last message can precede the last frame by a whole period, and
+        waiting for blindness then left INAV 270-290 ms without one (its timeout: 200 ms)."""
+        if self._last_flow_host_us is None:
+            return False
+        if now - self._last_flow_host_us < (self.autopilot_timeout_s - TIMEOUT_MARGIN_S) * 1e6:
+            return False
+        typical = self._submit_intervals.typical
+        return typical is not None and since_submit > SLOW_STREAM_WAIT * typical
+
     def _blind_keepalive(self, now: int) -> None:
         if self._last_submit_host_us is not None:
             since_submit = now - self._last_submit_host_us
             # _keepalive_after_us() is never below blind_after_s: skip it while frames arrive.
-            if since_submit < self.blind_after_s * 1e6 or since_submit < self._keepalive_after_us():
+            if ((since_submit < self.blind_after_s * 1e6 or since_submit < self._keepalive_after_us())
+                    and not self._timeout_near(now, since_submit)):
                 return
         if self._last_flow_host_us is not None and now - self._last_flow_host_us < 1e6 / BLIND_RATE_HZ:
             return
