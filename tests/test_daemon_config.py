@@ -272,10 +272,16 @@ def test_engine_model_selects_the_estimator_options(tmp_path):
 
 
 def test_autopilot_and_protocol_that_fit_together(tmp_path):
-    """ArduPilot reads MSP too (FLOW_TYPE = 7): that pair is allowed; a contradictory pair
-    made by a flag over the file is refused like one in the file."""
-    config = load_config(_write(tmp_path, "[link]\nautopilot = 'ardupilot'\nprotocol = 'msp'\n"))
-    assert (config.link.autopilot, config.link.protocol) == ("ardupilot", "msp")
+    """Each autopilot takes its own protocol: ArduPilot's MSP driver (FLOW_TYPE = 7) scales
+    counts by the message interval (the Matek 3901-L0X's convention), so ArduPilot with MSP
+    is refused with the reason and the way out; a contradictory pair made by a flag over
+    the file is refused like one in the file."""
+    with pytest.raises(ConfigError, match=r"ArduPilot takes optical flow over mavlink only; leave protocol "
+                                          r"out .*multiplies the mean counts by the time between messages.*"
+                                          r"FLOW_TYPE = 5"):
+        load_config(_write(tmp_path, "[link]\nautopilot = 'ardupilot'\nprotocol = 'msp'\n"))
+    config = load_config(_write(tmp_path, "[link]\nautopilot = 'inav'\nprotocol = 'msp'\n"))
+    assert (config.link.autopilot, config.link.protocol) == ("inav", "msp")
     config.set("link", "autopilot", "px4")
     with pytest.raises(ConfigError, match="--autopilot / --protocol"):
         config.validate()

@@ -303,3 +303,17 @@ def test_jittery_frames_at_the_lowest_rate_send_no_keepalive(peer):
     qualities = [q for _, q in reports]
     assert len(qualities) > 15 and qualities[0] == 0
     assert all(q > 0 for q in qualities[1:]), qualities
+
+
+@pytest.mark.parametrize("autopilot,protocol", [("ardupilot", "msp"), ("px4", "msp"), ("inav", "mavlink"),
+                                                ("both", "msp")])
+def test_a_link_config_refuses_a_protocol_its_autopilot_cannot_read(autopilot, protocol):
+    """The library refuses what the daemon's configuration refuses: PX4 reads MAVLink only,
+    INAV MSP only, and ArduPilot's MSP driver would scale per-degree counts by the message
+    interval (its error says so and names the way out)."""
+    with pytest.raises(ValueError, match=f"autopilot {autopilot!r} with protocol {protocol!r}: {autopilot} takes "
+                                         "optical flow over (mavlink|msp) only") as caught:
+        LinkConfig(port=None, autopilot=autopilot, protocol=protocol)
+    assert ("FLOW_TYPE = 5" in str(caught.value)) == (autopilot == "ardupilot")
+    for autopilot, protocol in (("ardupilot", "mavlink"), ("px4", "mavlink"), ("both", "mavlink"), ("inav", "msp")):
+        LinkConfig(port=None, autopilot=autopilot, protocol=protocol)

@@ -41,7 +41,7 @@ Timing model
   blind. And whatever the stream, a keep-alive also goes out :data:`TIMEOUT_MARGIN_S`
   before the timeout counted from the last *message* once the next frame is overdue: at a
   low message rate the last report can precede the last frame by a whole period.
-* **Where the autopilot's interval starts.** INAV and ArduPilot's MSP driver divide a
+* **Where the autopilot's interval starts.** INAV divides a
   message's counts by the time since the *previous message*, and PX4 integrates its own gyro
   from the previous message on; so any message starts the autopilot's next interval.
   Hence (1) when integration (re)starts — the first frame, a frame after a gap or a clock
@@ -64,7 +64,7 @@ from .message_log import MessageLog
 from .serial_port import OutgoingMessage, SerialTransport
 
 __all__ = ["FlowSample", "LinkConfig", "FlowLink", "choose_message_rate", "AUTOPILOTS", "PROTOCOLS",
-           "AUTOPILOT_PROTOCOLS", "BLIND_RATE_HZ", "MIN_MESSAGE_RATE_HZ", "MIN_RATE_REASON", "FRESH_REPORT_US",
+           "AUTOPILOT_PROTOCOLS", "MSP_ARDUPILOT", "protocol_refusal", "BLIND_RATE_HZ", "MIN_MESSAGE_RATE_HZ", "MIN_RATE_REASON", "FRESH_REPORT_US",
            "FLOOR_REPORTS_HZ", "resolve_protocol", "line_problem"]
 
 log = logging.getLogger(__name__)
@@ -72,10 +72,17 @@ log = logging.getLogger(__name__)
 AUTOPILOTS = ("ardupilot", "px4", "inav", "both")
 PROTOCOLS = ("mavlink", "msp")
 #: The wire protocols over which each autopilot setting's flow message set can go, the
-#: default first (docs/spec/autopilot-links.md): ArduPilot also reads MSP (FLOW_TYPE = 7),
-#: PX4 only MAVLink, INAV only MSP; "both" is the two MAVLink messages.
-AUTOPILOT_PROTOCOLS = {"ardupilot": ("mavlink", "msp"), "px4": ("mavlink",), "inav": ("msp",),
+#: default first (docs/spec/autopilot-links.md): PX4 only MAVLink, INAV only MSP; "both" is
+#: the two MAVLink messages. ArduPilot only MAVLink (FLOW_TYPE = 5): its MSP driver
+#: (FLOW_TYPE = 7, ``AP_OpticalFlow_MSP.cpp``) takes the mean counts of the messages since its
+#: last update *times* the time between them (the Matek 3901-L0X's convention), so no count
+#: per degree gives a rate that does not change with the message interval (:data:`MSP_ARDUPILOT`).
+AUTOPILOT_PROTOCOLS = {"ardupilot": ("mavlink",), "px4": ("mavlink",), "inav": ("msp",),
                        "both": ("mavlink",)}
+#: Why ArduPilot is not sent MSP (the refusal's explanation).
+MSP_ARDUPILOT = ("ArduPilot's MSP flow driver (FLOW_TYPE = 7) multiplies the mean counts by the time "
+                 "between messages (the Matek 3901-L0X's scaling), so per-degree counts would read "
+                 "wrong by a factor that changes with the message rate; use MAVLink (FLOW_TYPE = 5)")
 
 #: Quality-0 keep-alive messages per second while no frames arrive.
 BLIND_RATE_HZ = 10.0
@@ -152,7 +159,8 @@ class LinkConfig:
     protocol : {None, "mavlink", "msp"}
         None derives it from ``autopilot`` (inav → msp, others → mavlink). ``"mavlink"`` given
         explicitly sends both flow messages (unless the autopilot is "ardupilot" or "px4");
-        ``"msp"`` also serves Betaflight and ArduPilot's FLOW_TYPE=7.
+        ``"msp"`` also serves Betaflight (as ``"inav"``). Pairs that cannot work are refused
+        (:data:`AUTOPILOT_PROTOCOLS`).
     focal_length_px : float
         Focal length in pixels at the processed resolution.
     mounting_rotation_deg : {0, 90, 180, 270}
@@ -206,6 +214,9 @@ class LinkConfig:
             raise ValueError(f"autopilot must be one of {AUTOPILOTS}, got {self.autopilot!r}")
         if self.protocol is not None and self.protocol not in PROTOCOLS:
             raise ValueError(f"protocol must be None or one of {PROTOCOLS}, got {self.protocol!r}")
+        if self.protocol is not None and self.protocol not in AUTOPILOT_PROTOCOLS[self.autopilot]:
+            raise ValueError(f"autopilot {self.autopilot!r} with protocol {self.protocol!r}: "
+                             + protocol_refusal(self.autopilot))
         if int(self.mounting_rotation_deg) % 360 not in VALID_ROTATIONS_DEG:
             raise ValueError(f"mounting_rotation_deg must be one of {VALID_ROTATIONS_DEG}, "
                              f"got {self.mounting_rotation_deg}")
@@ -225,6 +236,13 @@ class LinkConfig:
                 raise ValueError(f"{name} must be 1..255, got {getattr(self, name)}")
         if not self.msp_counts_per_degree > 0:
             raise ValueError(f"msp_counts_per_degree must be positive, got {self.msp_counts_per_degree}")
+
+
+def protocol_refusal(autopilot: str) -> str:
+    """Why ``autopilot`` takes no other protocol than :data:`AUTOPILOT_PROTOCOLS` lists."""
+    speaks = AUTOPILOT_PROTOCOLS[autopilot]
+    text = f"{autopilot} takes optical flow over {' or '.join(speaks)} only"
+    return f"{text}: {MSP_ARDUPILOT}" if autopilot == "ardupilot" else text
 
 
 def resolve_protocol(config: LinkConfig) -> str:

@@ -1,5 +1,5 @@
 """MSP v2 link: MSP2_SENSOR_OPTIC_FLOW (0x1F02) for INAV (opflow_hardware = MSP), Betaflight
-and ArduPilot FLOW_TYPE=7.
+(as ``inav``). Not ArduPilot: see :data:`firmware_py.links.base.MSP_ARDUPILOT`.
 
 Frame: ``$`` ``X`` ``<``, flags u8 (0), function u16 LE, payload size u16 LE, payload,
 CRC8/DVB-S2 (poly 0xD5, init 0) over flags … payload. Payload (9 bytes): quality u8,
@@ -16,8 +16,7 @@ with ``integrated_x/y`` the MAVLink-convention angles of :mod:`firmware_py.angul
 ``opflow_scale`` = :attr:`LinkConfig.msp_counts_per_degree` (INAV default 10.5). INAV turns
 counts into deg/s with ``motion × 1e6 / Δt_us / opflow_scale``, applies the default
 ``opflow_align = CW0_DEG_FLIP`` (x negated) and works in a body frame with X forward, Y left,
-Z up; both signs come out negative. ArduPilot's MSP driver negates the counts as well, for the
-same sensor convention. Counts are integers: the fractional remainder is carried from message
+Z up; both signs come out negative. Counts are integers: the fractional remainder is carried from message
 to message.
 """
 

@@ -160,8 +160,8 @@ class SerialTransport:
         ``on_sent(message, host_us, latency_us)`` after a message was fully handed to the OS.
     on_flow_gap : callable, optional
         Called at every (re)open, and when a good flow report is dropped because one before
-        it was (a stalled line: the queue overflowed or its messages went stale). INAV, ArduPilot's MSP driver and
-        PX4 time a report's counts from the report before it, which the autopilot did not
+        it was (a stalled line: the queue overflowed or its messages went stale). INAV and PX4
+        time a report's counts from the report before it, which the autopilot did not
         get: good reports are held back until a quality-0 one (``marker``) has gone out,
         which the caller should make its next.
     """
@@ -258,7 +258,7 @@ class SerialTransport:
             log.info("serial port %s open at %d baud", self.port, self.baud)
         self._ever_opened = True
         # What was queued while the port was away belongs to the connection before: sent now
-        # it would be a burst of old reports, which INAV and ArduPilot's MSP driver divide by
+        # it would be a burst of old reports, which INAV divides by
         # the time since the message before (1.6 ms apart at 115200 baud, not a report
         # period) and ArduPilot's MAVLink driver fuses as current.
         # The autopilot's next interval begins at the first flow report on this connection,
