@@ -51,6 +51,10 @@ def _add_video_io_arguments(p: argparse.ArgumentParser, codec_help: str) -> None
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
 
 
+#: Slowest frame rate the output video takes (FFmpeg's writer refused 0.001 frames/s here).
+MIN_VIDEO_FPS = 0.01
+
+
 def _open_input(args):
     """``(frames, fps)`` of INPUT after the options ``flow`` and ``render`` share are checked
     (a bad ``--fps`` or ``--size``, an output that cannot be written or would overwrite the
@@ -59,6 +63,9 @@ def _open_input(args):
 
     if problem := output_problem(args.output):  # (a folder: OpenCV's writer only says it cannot write)
         raise ToolError(f"-o {args.output}: {problem}", 2)
+    if args.fps is not None and args.fps < MIN_VIDEO_FPS:  # (then blamed on the output file)
+        raise ToolError(f"--fps {args.fps:g}: at least {MIN_VIDEO_FPS:g} frames/s (the output video's rate; "
+                        "FFmpeg's writer refuses slower ones)", 2)
     source = open_input(args)
     return source, source.fps or 30.0
 
@@ -103,8 +110,8 @@ def run_flow(args) -> int:
     import numpy as np
 
     from emdflow import summarize
-    from emdflow.tools import (ToolError, check_count, check_positive, make_estimator, output_problem, progress_bar,
-                               refuse_overwrite, refuse_same_outputs)
+    from emdflow.tools import (ToolError, check_count, check_positive, frames_origin, make_estimator, output_problem,
+                               progress_bar, refuse_overwrite, refuse_same_outputs)
     from emdflow.tools.flo import write_flo
     from emdflow.tools.flowviz import render_flow_frame
     from emdflow.tools.video_io import MAX_VIDEO_SIDE, VideoWriter
@@ -148,7 +155,7 @@ def run_flow(args) -> int:
             flo_dir.mkdir(exist_ok=True)
         except OSError as e:
             raise ToolError(f"{args.flo_dir}: cannot create folder ({e.strerror})", 2) from None
-    est = make_estimator(args, source.width, source.height)
+    est = make_estimator(args, source.width, source.height, frames_from=frames_origin(args))
     store = {"u": [], "v": [], "flow_x": [], "flow_y": [], "quality": []} if args.npz else None
     n = 0
     interrupted = False
@@ -188,8 +195,9 @@ def run_flow(args) -> int:
         if not cv2.imwrite(args.snapshot, picture, [cv2.IMWRITE_PNG_COMPRESSION, 9] if png else []):
             raise ToolError(f"{args.snapshot}: OpenCV cannot write this image", 2)
     if interrupted:
-        print(f"emdflow flow: interrupted after {writer.frames_written} frames; {args.output} is playable",
-              file=sys.stderr)
+        # (the writer opens on the first frame: before it, there is no file to play)
+        written = f"{args.output} is playable" if writer.frames_written else f"{args.output} was not written"
+        print(f"emdflow flow: interrupted after {writer.frames_written} frames; {written}", file=sys.stderr)
         return 130
     if n == 0:
         raise ToolError(f"{args.input}: no frames", 2)

@@ -389,7 +389,11 @@ _MIN_BINS = 4
 def _check_call(field, min_detections, caller: str) -> None:
     """The argument checks :func:`looming_cues` and :func:`slope_expansion_rate` share: a
     hand-made field's position histogram must have the engine's shape (one of another
-    shape gave a cue from the wrong bins), and ``min_detections`` a whole number ≥ 0."""
+    shape gave a cue from the wrong bins), and ``min_detections`` a whole number ≥ 0; anything
+    but a :class:`FlowField` is a TypeError (as for summarize(): not an AttributeError from
+    inside)."""
+    if not isinstance(field, FlowField):
+        raise TypeError(f"{caller} takes a FlowField, not {type(field).__name__}")
     if not _is_whole(min_detections) or min_detections < 0:
         raise ValueError(f"{caller}: min_detections={min_detections!r}: expected a whole number >= 0")
     field.require_evidence(caller)
@@ -426,8 +430,6 @@ def looming_cues(field: FlowField, *, min_detections: int = 50) -> LoomingCues:
     TypeError
         If ``field`` is not a :class:`FlowField`.
     """
-    if not isinstance(field, FlowField):  # (as summarize(): not an AttributeError from inside)
-        raise TypeError(f"looming_cues() takes a FlowField, not {type(field).__name__}")
     _check_call(field, min_detections, "looming_cues()")
     # (a brightness step in the templates: their detections are not motion, as for summarize())
     if not field.ready or field.exposure_step or field.positions is None:
@@ -464,7 +466,7 @@ def slope_expansion_rate(field: FlowField, *, min_detections: int = 50) -> float
     against position (what :func:`looming_cues` falls back to for a channel set without a
     table; kept for comparison, e.g. by ``emdflow.tools.zoom_eval``). None when no axis
     has ``min_detections`` detections in at least 3 position bins; ValueError for a field
-    without summary evidence."""
+    without summary evidence, TypeError for anything but a :class:`FlowField`."""
     _check_call(field, min_detections, "slope_expansion_rate()")
     if not field.ready or field.positions is None:
         return None

@@ -63,7 +63,8 @@ class FlowEstimator:
     threshold : float, optional
         Ternary threshold in gray levels of 8-bit input, paper default 5 (§4).
     prefilter_size : int, optional
-        Gaussian prefilter width, ``sigma = size / 6``; paper default 11, 0 = off (§4).
+        Gaussian prefilter width (odd, at most 101 px), ``sigma = size / 6``; paper default 11,
+        0 = off (§4).
     sharp_templates : bool, optional
         Accept the sharp template ``[p 0 / 0 p]`` too (default False, spec §2).
     delays : tuple of int, optional
@@ -206,6 +207,11 @@ class FlowEstimator:
         expected = f"a 2-D uint8 array of shape ({self.height}, {self.width})"
         if not isinstance(frame, np.ndarray):
             raise ValueError(f"frame: expected {expected}, got {type(frame).__name__}")
+        if isinstance(frame, np.ma.MaskedArray):
+            # the OpenCL backend would read the data under the mask, the reference compute
+            # with the mask: neither is what a mask means here
+            raise ValueError(f"frame: expected {expected}, got a masked array (fill it first: "
+                             "frame.filled(value))")
         if frame.ndim != 2:
             raise ValueError(f"frame: expected {expected}, got {frame.ndim}-D shape {frame.shape}")
         if frame.dtype != np.uint8:

@@ -111,14 +111,14 @@ def device_label(device) -> str:
 def _device_choice(device) -> tuple:
     """``(choice, from_env)``: the caller's device choice, else EMDFLOW_OPENCL_DEVICE's
     (``from_env`` True); choice None: automatic. A choice is an index (an int, numpy's too,
-    or a string of digits) or a name (a str); anything else (True, 1.5, a list) is a
-    TypeError rather than a guess. An empty or blank name is no choice (the variable then
+    or a string of decimal digits) or a name (a str); anything else (True, 1.5, a list) is a
+    ValueError (as every other bad parameter) rather than a guess. An empty or blank name is no choice (the variable then
     applies; " " matched any name with a space)."""
     if device is not None:
         if _is_whole(device):
             return int(device), False
         if not isinstance(device, str):
-            raise TypeError(f"device={device!r}: expected an index (int) or part of a device name (str)")
+            raise ValueError(f"device={device!r}: expected an index (int) or part of a device name (str)")
         if device.strip():
             return device.strip(), False
     return os.environ.get("EMDFLOW_OPENCL_DEVICE", "").strip() or None, True
@@ -131,7 +131,7 @@ def _pick_device(choice, *, from_env: bool = False):
     variable is not in the call)."""
     devices = _all_devices()
     origin = " (EMDFLOW_OPENCL_DEVICE)" if from_env else ""
-    if isinstance(choice, int) or choice.strip().isdigit():
+    if isinstance(choice, int) or choice.strip().isdecimal():
         index = int(choice)
         if not 0 <= index < len(devices):
             raise ValueError(f"OpenCL device index {index}{origin} out of range: {len(devices)} device(s) found")

@@ -69,6 +69,10 @@ GRADIENT_CLASS_STEPS = (1, 2, 4)
 HISTOGRAM_BINS = (len(GRADIENT_CLASS_STEPS) + 1) * ORIENTATION_BINS
 #: Fixed-point scale of the orientation boundary table (cos/sin × 2**14).
 _ORIENT_ONE = 1 << 14
+#: Widest prefilter window, px (sigma = 17 px, already beyond the widest receptor, 15 px;
+#: the OpenCL kernel keeps one horizontal pass per tap of the window in registers, and a
+#: window of 100 001 taps took 13 s per 40×30 frame).
+MAX_PREFILTER_SIZE = 101
 #: The paper's 11-tap Gaussian (sigma = 11/6) with integer weights summing to 256.
 _GAUSS11 = (1, 5, 15, 31, 48, 56, 48, 31, 15, 5, 1)
 
@@ -82,8 +86,9 @@ def gaussian_weights(size: int, total: int = 256) -> tuple[int, ...]:
     """
     if size in (0, 1):
         return (total,)
-    if size < 0 or size % 2 == 0:
-        raise ValueError(f"prefilter_size={size}: must be 0 (off) or an odd number >= 3")
+    if size < 0 or size % 2 == 0 or size > MAX_PREFILTER_SIZE:
+        raise ValueError(f"prefilter_size={size}: must be 0 (off) or an odd number from 3 to "
+                         f"{MAX_PREFILTER_SIZE}")
     if size == 11 and total == 256:
         return _GAUSS11
     sigma = size / 6.0
@@ -152,8 +157,8 @@ class EngineParams:
         Ternary threshold ``θ`` on the mean receptor change, in gray levels of the 8-bit
         input (paper §4: 5).
     prefilter_size : int
-        Width ``w`` of the Gaussian prefilter window (``sigma = w / 6``; paper §4: 11);
-        0 disables it.
+        Width ``w`` of the Gaussian prefilter window (``sigma = w / 6``; paper §4: 11), odd,
+        at most :data:`MAX_PREFILTER_SIZE` (101); 0 disables it.
     sharp_templates : bool
         Also accept the "sharp" template ``[p 0 / 0 p]`` (spec §2); off in the paper's model.
     delays : tuple of int

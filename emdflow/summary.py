@@ -1236,11 +1236,14 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
     if not isinstance(field, FlowField):
         raise TypeError(f"summarize() takes a FlowField, not {type(field).__name__}")
     field.require_evidence("summarize()")
-    if field.histogram.shape[0] != field.params.evidence_axes:
-        raise ValueError(f"summarize(): the field's histogram has {field.histogram.shape[0]} detector axes, "
+    if not isinstance(field.histogram, (np.ndarray, np.generic)):  # (a numpy scalar: its shape, below)
+        raise ValueError(f"summarize(): the field's histogram is a {type(field.histogram).__name__}, "
+                         "not an array (axis, code, bin)")
+    shape = np.shape(field.histogram)
+    if len(shape) == 3 and shape[0] != field.params.evidence_axes:
+        raise ValueError(f"summarize(): the field's histogram has {shape[0]} detector axes, "
                          f"its parameters ({'with' if field.params.diagonal_evidence else 'without'} "
                          f"diagonal_evidence) {field.params.evidence_axes}")
-    shape = np.shape(field.histogram)
     if (len(shape) != 3 or shape[1] != 2 * len(field.params.channels)
             or shape[2] not in (HISTOGRAM_BINS, ORIENTATION_BINS)):  # (classes or not: see _model_of)
         # (a hand-made field's histogram of another shape was an IndexError or a reshape

@@ -190,7 +190,7 @@ def _load_texture_cached(name: str) -> np.ndarray:
         kind, _, rest = name.partition("-")
         fields = rest.split("-", 1)  # the angle may carry its own minus sign
         try:  # <kind>-<seed>[-<angle in degrees>]
-            if not (1 <= len(fields) <= 2 and fields[0].isdigit()):
+            if not (1 <= len(fields) <= 2 and fields[0].isdecimal()):
                 raise ValueError(name)
             angle = float(fields[1]) if len(fields) == 2 else 0.0
             if not math.isfinite(angle):

@@ -112,6 +112,8 @@ def test_reset_forgets_history(backend):
         (np.zeros((96, 72), np.uint8), "(96, 72)"),
         (np.zeros((73, 96), np.uint8), "96x73"),
         ([[0] * 96] * 72, "list"),
+        # the backends would disagree on it (OpenCL reads the data, numpy computes masked)
+        (np.ma.masked_array(np.zeros((72, 96), np.uint8), mask=False), "masked array"),
     ],
 )
 def test_bad_frames_raise_value_error_naming_expected_and_received(frame, message):
@@ -129,6 +131,8 @@ def test_bad_frames_raise_value_error_naming_expected_and_received(frame, messag
         (dict(scales=(1, 17)), "15"),
         (dict(threshold=-1.0), "threshold"),
         (dict(prefilter_size=4), "prefilter_size"),
+        (dict(prefilter_size=103), "from 3 to 101"),
+        (dict(prefilter_size=1_000_000_001), "from 3 to 101"),  # (was a 7 GiB allocation)
         (dict(delays=(2,)), "delays"),
         (dict(delay_scales=(3,), scales=(1, 5), delays=(1, 2)), "delay_scales"),
         (dict(delay_scales=(), delays=(1, 2)), r"delay_scales=\(\)"),  # no channel, yet 6 frames late
@@ -230,9 +234,12 @@ def test_opencl_devices_and_device_choice(monkeypatch):
     assert emdflow.FlowEstimator(64, 48, device=devices[0][1]).device == devices[0][1]
     monkeypatch.setenv("EMDFLOW_OPENCL_DEVICE", devices[0][1])
     assert emdflow.FlowEstimator(64, 48).device == devices[0][1]
-    for bad in (True, 1.5, [0]):
-        with pytest.raises(TypeError, match="expected an index"):
+    for bad in (True, 1.5, [0]):  # (a ValueError, as every bad parameter: it was a TypeError)
+        with pytest.raises(ValueError, match="expected an index"):
             emdflow.FlowEstimator(64, 48, device=bad)
+    # a superscript two is a digit to str.isdigit() but no number to int(): a name
+    with pytest.raises(ValueError, match="OpenCL device '²' not found among"):
+        emdflow.FlowEstimator(64, 48, device="²")
     monkeypatch.setenv("EMDFLOW_OPENCL_DEVICE", "no-such-device")
     # (an empty or blank name is no choice: the variable applies; "" skipped it and " "
     # matched any name with a space)

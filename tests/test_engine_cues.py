@@ -128,9 +128,14 @@ def test_no_cue_while_a_brightness_step_is_in_the_templates():
 
 
 def test_cue_of_something_that_is_no_field_is_a_type_error():
-    for thing in (None, np.zeros((4, 4))):
+    from emdflow.cues import slope_expansion_rate
+
+    for thing in (None, np.zeros((4, 4)), "x"):
         with pytest.raises(TypeError, match=r"looming_cues\(\) takes a FlowField, not "):
             looming_cues(thing)
+        # (its uncalibrated fallback too: an AttributeError from inside before)
+        with pytest.raises(TypeError, match=r"slope_expansion_rate\(\) takes a FlowField, not "):
+            slope_expansion_rate(thing)
 
 
 def test_cue_reads_the_histograms_only():

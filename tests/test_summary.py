@@ -276,10 +276,12 @@ def test_uncalibrated_channels_fall_back_to_ioc():
         summarize(_field(hist[:2], stats=_stats(params), params=params, frame_index=20))
     # other code or bin counts, or no bin axis: said too (an IndexError or a reshape error
     # from inside the fit before)
-    for bad in (hist[:, :10], np.zeros(hist.shape[:2] + (100,), np.int64), hist[:, :, 0]):
+    for bad in (hist[:, :10], np.zeros(hist.shape[:2] + (100,), np.int64), hist[:, :, 0], np.int64(0)):
         with pytest.raises(ValueError, match=rf"histogram has shape \({', '.join(map(str, bad.shape))},?\), "
                                              rf"its parameters need \(4, {hist.shape[1]}, 64\)"):
             summarize(_field(bad, stats=_stats(params), params=params, frame_index=20))
+    with pytest.raises(ValueError, match=r"histogram is a list, not an array \(axis, code, bin\)"):
+        summarize(_field(hist.tolist(), stats=_stats(params), params=params, frame_index=20))
 
 
 @pytest.mark.parametrize("flow", [(5.0, -0.02), (-5.0, 0.03), (0.02, 4.0), (3.0, -3.02)])

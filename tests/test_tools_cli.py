@@ -721,6 +721,48 @@ def test_bad_inputs_give_one_line_naming_the_file(tmp_path, capsys, clip):
         _one_line_error(capsys, tex)
 
 
+def test_bad_sizes_and_rates_name_their_origin(tmp_path, capsys, clip):
+    """A frame size the engine cannot take is the input's fault, said with its name (it
+    was blamed on "engine options"); a synthetic size beyond the engine's limits is refused
+    before a frame is rendered (100000x100000 was a traceback from OpenCV's allocator); an
+    output video's rate too slow for FFmpeg is --fps's fault (it was blamed on the output
+    file, after the first frame)."""
+    tiny = tmp_path / "tiny.avi"
+    w = cv2.VideoWriter(str(tiny), cv2.VideoWriter_fourcc(*"FFV1"), 25.0, (2, 2), True)
+    for _ in range(3):
+        w.write(np.zeros((2, 2, 3), np.uint8))
+    w.release()
+    assert main(["frames", str(tiny), "--backend", "numpy"]) == 2
+    err = _one_line_error(capsys, tiny, "frame size 2x2")
+    assert "engine options" not in err
+    assert main(["frames", str(clip[0]), "--size", "2x2", "--backend", "numpy"]) == 2
+    _one_line_error(capsys, "--size 2x2: frame size 2x2")
+    for size, why in (("100000x100000", "at most 16777216 pixels"), ("40000x8", "at most 32768 px wide"),
+                      ("40000x4", "both sides must be at least 8 px")):
+        assert main(["frames", f"synthetic:size={size},frames=3", "--backend", "numpy"]) == 2
+        _one_line_error(capsys, f"size={size}: {why}")
+    assert main(["flow", str(clip[0]), "-o", str(tmp_path / "slow.avi"), "--fps", "1e-300", "--backend", "numpy"]) == 2
+    _one_line_error(capsys, "--fps 1e-300: at least 0.01 frames/s")
+    assert not (tmp_path / "slow.avi").exists()
+
+
+def test_flow_ctrl_c_before_the_first_frame_says_nothing_was_written(tmp_path, clip, backend, monkeypatch,
+                                                                      capsys):
+    """The writer opens on the first frame: interrupted before it, there is no video, and
+    the message said it was playable."""
+    import emdflow.tools.flowviz as fv
+
+    def interrupting(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(fv, "render_flow_frame", interrupting)
+    out = tmp_path / "none.avi"
+    assert main(["flow", str(clip[0]), "-o", str(out), "--backend", backend, "-q"]) == 130
+    assert not out.exists()
+    err = capsys.readouterr().err
+    assert f"interrupted after 0 frames; {out} was not written" in err, err
+
+
 def test_exit_code_as_a_process(tmp_path):
     missing = tmp_path / "nothing.mkv"
     r = subprocess.run([sys.executable, "-m", "emdflow", "flow", str(missing), "-o", str(tmp_path / "o.avi")],

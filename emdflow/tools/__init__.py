@@ -40,7 +40,7 @@ import ast
 import contextlib
 
 __all__ = ["DIS_MIN_LONG_SIDE", "ToolError", "add_engine_arguments", "check_positive", "engine_kwargs",
-           "frame_size_problem", "interp_weights", "keyword_options", "make_estimator", "matplotlib_missing",
+           "frame_size_problem", "frames_origin", "interp_weights", "keyword_options", "make_estimator", "matplotlib_missing",
            "missing_folder", "number_list", "output_problem", "plot_type_problem", "progress_bar",
            "refuse_same_outputs", "texture_names_problem"]
 
@@ -77,6 +77,11 @@ class ToolError(Exception):
     def __init__(self, message: str, code: int = 2):
         super().__init__(message)
         self.code = code
+
+
+def frames_origin(args) -> str:
+    """Where a tool's frame size comes from, for its errors: ``--size WxH`` or the input."""
+    return f"--size {args.size}" if getattr(args, "size", None) else str(args.input)
 
 
 def frame_size_problem(width: int, height: int, *, dis: bool, dis_role: str = "",
@@ -301,7 +306,7 @@ def engine_kwargs(args) -> dict:
             kw[key] = value
     device = getattr(args, "device", None)
     if device is not None:
-        kw["device"] = int(device) if device.isdigit() else device
+        kw["device"] = int(device) if device.isdecimal() else device
     kw.update(keyword_options(getattr(args, "engine_opt", []) or [], "--engine-opt"))
     return kw
 
@@ -323,8 +328,9 @@ def keyword_options(items, option: str) -> dict:
     return kw
 
 
-def make_estimator(args, width: int, height: int):
-    """A :class:`emdflow.FlowEstimator` for parsed command-line options.
+def make_estimator(args, width: int, height: int, *, frames_from: str | None = None):
+    """A :class:`emdflow.FlowEstimator` for parsed command-line options; ``frames_from``
+    names where the frames' size came from (the input, ``--size``) for an error about it.
 
     Raises
     ------
@@ -344,6 +350,8 @@ def make_estimator(args, width: int, height: int):
     except TypeError as e:
         raise ToolError(f"engine options: {e}", 2) from None
     except ValueError as e:
+        if frames_from and str(e).startswith("frame size"):  # the input's fault, not an option's
+            raise ToolError(f"{frames_from}: {e}", 2) from None
         raise ToolError(f"engine options: {e}", 2) from None
     except (RuntimeError, ImportError) as e:
         from emdflow.opencl_backend import exception_summary

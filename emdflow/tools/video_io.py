@@ -279,6 +279,12 @@ def parse_synthetic(uri: str) -> dict:
         opts["size"] = parse_size(opts["size"])
     except ValueError as e:
         raise InputError(f"{uri}: {e}") from None
+    from emdflow.tools import frame_size_problem
+
+    # (before the first frame is rendered: 100000x100000 was a traceback from OpenCV's
+    # allocator)
+    if problem := frame_size_problem(*opts["size"], dis=False):
+        raise InputError(f"{uri}: size={opts['size'][0]}x{opts['size'][1]}: {problem}")
     if opts["frames"] < 1 or opts["fps"] <= 0:
         raise InputError(f"{uri}: frames and fps must be positive")
     if opts["frames"] > MAX_SYNTHETIC_FRAMES:  # (a clip of 10^20 frames overflowed an index)

@@ -56,7 +56,7 @@ def parse_uri(uri: str) -> SourceSpec:
         )
     if scheme in ("v4l2", "depthai", "video", "depthai-replay") and not target:
         raise ValueError(f"source {uri!r}: {scheme}: needs a device or path after the colon")
-    if scheme == "v4l2" and not (target.isdigit() or target.startswith("/dev/")):
+    if scheme == "v4l2" and not (target.isdecimal() or target.startswith("/dev/")):
         raise ValueError(f"source {uri!r}: expected v4l2:/dev/videoN or v4l2:N")
     if scheme == "depthai" and target.upper() not in ("CAM_B", "CAM_C"):
         raise ValueError(f"source {uri!r}: expected depthai:CAM_B or depthai:CAM_C (OAK mono cameras)")

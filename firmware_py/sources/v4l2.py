@@ -136,7 +136,7 @@ MAX_DEVICE_INDEX = 255
 
 def parse_device(target: str) -> str | int:
     """``/dev/video0`` → that path; ``0`` → index 0; anything else is an error."""
-    if target.isdigit():
+    if target.isdecimal():
         if int(target) > MAX_DEVICE_INDEX:
             raise SourceError(f"v4l2 device index {target}: expected 0 to {MAX_DEVICE_INDEX} "
                               f"(/dev/video0 to /dev/video{MAX_DEVICE_INDEX})")
