@@ -44,6 +44,16 @@ def test_steady_subset_keeps_even_spacing_under_load():
     assert subset.k == 1 and set(np.diff(accepted[-20:])) == {1}
 
 
+def test_steady_subset_follows_an_engine_far_slower_than_the_camera():
+    """A 0.28 s engine behind a 100 fps camera needs every 33rd frame; a k held at 16 left
+    the mailbox replacing every other subset frame, so no two processed frames were evenly
+    spaced and every report went out with quality 0."""
+    subset = SteadySubset()
+    accepted = _feed(subset, 0, 1500, 0.28)
+    assert subset.k == 33                                         # ceil(0.28 * 1.15 / 0.01)
+    assert set(np.diff(accepted[-10:])) == {33}
+
+
 def test_steady_subset_ignores_single_slow_frames_but_not_drops():
     subset = SteadySubset()
     subset.busy_drop()
