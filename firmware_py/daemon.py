@@ -267,7 +267,8 @@ class SteadySubset:
 class SourceKeeper:
     """Owns a frame source: opens it, reads it, and after a failure, or the end of a live
     stream, closes it and reopens it with exponential back-off; a recording (a source that
-    is not live) ends instead (:attr:`ended`). :meth:`read` never raises.
+    is not live) ends instead (:attr:`ended`), also when a read fails (:attr:`failed`): reopened
+    it would start again at its first frame. :meth:`read` never raises.
 
     Parameters
     ----------
@@ -310,6 +311,8 @@ class SourceKeeper:
         self.busy_with = ""
         #: a recording (file, replay) reached its end: nothing more to read, nothing to reopen
         self.ended = False
+        #: ... because a read failed (the daemon then exits 1)
+        self.failed = False
 
     def adopt(self, source: FrameSource) -> None:
         """Use an already opened source (opened at start-up to learn its size)."""
@@ -400,7 +403,16 @@ class SourceKeeper:
             finally:
                 self._count_source_skips(source)
             if error is not None:
-                self._fail(error if source.uri in error else f"source {source.uri}: {error}")
+                what = error if source.uri in error else f"source {source.uri}: {error}"
+                if not source.live:
+                    # a recording reopened starts at its first frame again: it would replay
+                    # what was flown (and, failing at the same place, forever)
+                    log.error("%s: a recording is not reopened (it would start again at its first "
+                              "frame): stopping", what)
+                    self.ended = self.failed = True
+                    self.close()
+                    return None
+                self._fail(what)
                 return None
             if frame is None:
                 if not source.live:  # a recording ends; a camera's stream ending is a loss
@@ -780,7 +792,9 @@ class Daemon:
                 self._process(frame, now_s)
             elif ended:  # a recording's last frame is processed: send what is queued, stop
                 self.link.service(host_us())
-                if self.stats.frames_in == 0:  # not one frame: nothing was flown, say so
+                if keeper.failed:  # (logged where it failed)
+                    self.exit_code = 1
+                elif self.stats.frames_in == 0:  # not one frame: nothing was flown, say so
                     log.error("source %s ended before its first frame (a truncated file, or a codec "
                               "this OpenCV cannot decode)", self.config.source.uri)
                     self.exit_code = 2

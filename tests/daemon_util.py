@@ -218,11 +218,13 @@ def engine_backend() -> str:
 
 class FaultySource:
     """A real source that fails the way a camera does: unplugged at read ``fail_at`` (a
-    SourceError; the daemon then reopens it), or one frame of the wrong size at read
-    ``bad_at``."""
+    SourceError; the daemon then reopens a camera and stops a recording), or one frame of
+    the wrong size at read ``bad_at``. ``live``: whether it stands for a camera (default:
+    what the inner source is; a synthetic flight or a file is a recording)."""
 
-    def __init__(self, inner, *, fail_at=None, bad_at=None):
+    def __init__(self, inner, *, fail_at=None, bad_at=None, live=None):
         self.inner, self.fail_at, self.bad_at, self.reads = inner, fail_at, bad_at, 0
+        self.live = inner.live if live is None else live
 
     def __getattr__(self, name):
         return getattr(self.inner, name)

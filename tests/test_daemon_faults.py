@@ -106,7 +106,7 @@ def test_source_that_raises_is_reopened_and_link_reports_blind(tmp_path, caplog)
 
     def factory():
         inner = make_source("synthetic:u=2,v=1", width=96, height=72, fps=100)
-        made.append(FaultySource(inner, fail_at=15 if not made else None))
+        made.append(FaultySource(inner, fail_at=15 if not made else None, live=True))  # a camera
         return made[-1]
 
     code, daemon, msgs = _run_inprocess(tmp_path, factory, frames=40, heartbeat_rate_hz=20.0)
@@ -128,6 +128,29 @@ def test_source_that_raises_is_reopened_and_link_reports_blind(tmp_path, caplog)
     assert blind, "no quality-0 flow message while the source was closed"
     gap = seq[blind[0]:next(i for i in good if i > blind[0])]
     assert ("HEARTBEAT", None) in gap
+
+
+@pytest.mark.parametrize("threading", ["single", "capture-thread"])
+def test_a_recording_whose_read_fails_stops_instead_of_replaying(tmp_path, caplog, threading):
+    """A file that fails to read part-way (an I/O error) ends the run with exit 1 and the
+    error logged: reopened like a camera it started again at frame 0, flew the same frames
+    again and, failing at the same place, looped until --frames stopped it."""
+    caplog.set_level(logging.INFO, logger="emdflowd")
+    clip = write_video(tmp_path / "part.mkv", flight_frames(30, width=96, height=72), fps=50)
+    made = []
+
+    def factory():
+        made.append(FaultySource(make_source(f"video:{clip}"), fail_at=20))
+        return made[-1]
+
+    code, daemon, msgs = _run_inprocess(tmp_path, factory, frames=200,
+                                        settings=[("source", "uri", f"video:{clip}"),
+                                                  ("daemon", "threading", threading)])
+    assert code == 1
+    assert len(made) == 1 and daemon.stats.reopens == 0
+    assert daemon.stats.processed <= 19  # the frames before the failure, once (a subset may skip some)
+    assert "read failed (USB camera unplugged): a recording is not reopened" in caplog.text
+    assert "reopening in" not in caplog.text
 
 
 @pytest.mark.parametrize("call", ["read", "close", "open"])
@@ -165,7 +188,7 @@ def test_a_hung_driver_call_ends_the_daemon_for_systemd_to_restart(tmp_path, cap
 
     def factory():  # the first camera fails at its 15th read (unplugged), the next ones work
         made.append(Wedged(make_source("synthetic:u=2,v=1", width=96, height=72, fps=100),
-                           fail_at=15 if call != "read" and not made else None))
+                           fail_at=15 if call != "read" and not made else None, live=True))
         return made[-1]
 
     started = time.monotonic()

@@ -246,7 +246,7 @@ def _flaky_camera(clock, opened, fail_at):
     def factory():
         opened.append(clock())
         return FaultySource(make_source("synthetic:u=2,v=1", width=32, height=24, fps=100),
-                            fail_at=fail_at(len(opened)))
+                            fail_at=fail_at(len(opened)), live=True)
     return factory
 
 

@@ -71,7 +71,7 @@ def test_keepalive_starts_before_the_autopilot_times_out(tmp_path, autopilot, bl
 
     def factory():
         inner = make_source("synthetic:u=2,v=1", width=96, height=72, fps=100)
-        made.append(FaultySource(inner, fail_at=20 if not made else None))
+        made.append(FaultySource(inner, fail_at=20 if not made else None, live=True))  # a camera
         return made[-1]
 
     log_path = tmp_path / "sent.csv"
