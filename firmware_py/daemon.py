@@ -52,6 +52,8 @@ _POLL_S = 0.01            # longest wait for a frame before servicing the link a
 # V4L2 read gives up after 10 s): only a new process recovers it, so the daemon exits 1 and
 # systemd restarts it.
 _STUCK_DRIVER_S = 20.0
+#: Fewest rows of a frame that should feed the summary (:meth:`Daemon._warn_of_sparse_evidence`).
+_MIN_EVIDENCE_ROWS = 15
 # Frames further apart than this many typical processed intervals are a gap (and no frame
 # for that long is blindness), when that is longer than the configured time.
 _GAP_INTERVALS = 3.0
@@ -674,6 +676,20 @@ class Daemon:
             emdflow.summary.prepare(params)
         log.info("engine %s %dx%d ready in %.2f s%s", self.config.engine.backend, self.width, self.height,
                  time.monotonic() - t0, _on_device(self.estimator))
+        self._warn_of_sparse_evidence()
+
+    def _warn_of_sparse_evidence(self) -> None:
+        """An ``[engine] evidence_row_step`` that samples too few rows of the processed frame
+        leaves the summary too few detections: quality 0 on nearly every frame (120 at 240
+        px high: 0 good reports of 40; 16: 28 of 40), which the config cannot know before
+        the source's size is."""
+        step = self.config.engine.evidence_row_step
+        rows = -(-self.height // step) if step else None
+        if rows is not None and rows < _MIN_EVIDENCE_ROWS:
+            log.warning("[engine] evidence_row_step = %d samples %d of the %d processed rows: the summary "
+                        "sees too few detections and reports quality 0 on most frames; at most %d here "
+                        "(0, automatic, samples about 60)", step, rows, self.height,
+                        max(1, self.height // _MIN_EVIDENCE_ROWS))
 
     # -- the loop ---------------------------------------------------------------------
     def stop(self) -> None:

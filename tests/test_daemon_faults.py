@@ -153,6 +153,27 @@ def test_a_recording_whose_read_fails_stops_instead_of_replaying(tmp_path, caplo
     assert "reopening in" not in caplog.text
 
 
+def test_an_evidence_row_step_that_starves_the_summary_is_named_at_start(tmp_path, caplog):
+    """[engine] evidence_row_step beyond the processed height leaves the summary one
+    sampled row: quality 0 on every frame, silently before. The start-up log names the key,
+    the rows it samples and the largest step that works; a step that samples enough rows
+    says nothing."""
+    caplog.set_level(logging.INFO, logger="emdflowd")
+
+    def factory():
+        return make_source("synthetic:u=2,v=1", width=96, height=72, fps=100)
+
+    code, _, msgs = _run_inprocess(tmp_path, factory, frames=30, settings=[("engine", "evidence_row_step", 120)])
+    assert code == 0
+    assert ("[engine] evidence_row_step = 120 samples 1 of the 72 processed rows: the summary sees too few "
+            "detections and reports quality 0 on most frames; at most 4 here") in caplog.text
+    assert not any(m.quality for m in msgs if m.get_type() == "OPTICAL_FLOW")  # (what it warns of)
+    caplog.clear()
+    code, _, msgs = _run_inprocess(tmp_path, factory, frames=30, settings=[("engine", "evidence_row_step", 4)])
+    assert code == 0 and "evidence_row_step" not in caplog.text
+    assert any(m.quality for m in msgs if m.get_type() == "OPTICAL_FLOW")
+
+
 @pytest.mark.parametrize("call", ["read", "close", "open"])
 def test_a_hung_driver_call_ends_the_daemon_for_systemd_to_restart(tmp_path, caplog, monkeypatch, call):
     """A camera whose read, or whose close after a failed read, or whose reopen never
