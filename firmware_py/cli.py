@@ -115,12 +115,18 @@ def _apply_flags(config, args) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``emdflowd``; returns the exit code."""
+    # A SIGHUP (logrotate's, a closing terminal) before run_daemon installs its handler
+    # would kill the process silently, which systemd counts as a clean stop (no restart):
+    # until then there is no log to reopen, so it is ignored.
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)
     args = build_parser().parse_args(argv)
     # The demo's table is the output: only warnings and errors interleave unless asked.
     setup_logging(args.log_level or ("WARNING" if args.demo else "INFO"))
     log = logging.getLogger("emdflowd")
     if args.demo:
         from .demo import run_demo
+
+        signal.signal(signal.SIGHUP, signal.SIG_DFL)  # (a terminal's demo ends with the terminal)
 
         # The demo's link is its own (MAVLink for ArduPilot into a pseudo-terminal it reads
         # back with pymavlink): a port, baud rate, autopilot or protocol given for it would be

@@ -586,6 +586,12 @@ class Daemon:
         try:
             return emdflow.FlowEstimator(width, height, backend=backend, **self.config.engine.estimator_options())
         except ValueError as exc:  # a setting, not a failure: exit 2 (systemd does not restart)
+            if str(exc).startswith("frame size"):  # the source's size, not an [engine] setting
+                s = self.config.source
+                if s.width is None:
+                    raise ConfigError(f"source {s.uri}: {exc}; set [source] width and height to a size "
+                                      "the engine takes") from None
+                raise ConfigError(f"[source] width and height: {exc}") from None
             # (the engine's own message names EMDFLOW_OPENCL_DEVICE when that made the choice)
             raise ConfigError(str(exc) if "(EMDFLOW_OPENCL_DEVICE)" in str(exc) else f"[engine]: {exc}") from None
 

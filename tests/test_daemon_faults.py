@@ -13,6 +13,7 @@ import socket
 import subprocess
 import time
 
+import numpy as np
 import pytest
 
 from firmware_py.config import Config
@@ -63,6 +64,22 @@ def test_a_video_file_that_ends_stops_the_daemon_after_its_last_frame(tmp_path, 
         # and a frame it passes over makes the next three uneven: sent with quality 0)
         assert 4 <= len(flows) <= 12
         assert flows[-1].quality > 0 or re.search(r"uneven [1-9]", err), [m.quality for m in flows]
+
+
+def test_a_recording_of_a_size_the_engine_cannot_take_names_the_file(tmp_path):
+    """A file's own frame size outside the engine's limits is the source's problem, and
+    [source] width and height its fix: the message said "[engine]: frame size 2x2"."""
+    clip = write_video(tmp_path / "dot.mkv", np.zeros((5, 2, 2), np.uint8), fps=50)
+    pty = PtyPair()
+    try:
+        result = run_cli(["--config", _config(tmp_path), "--source", f"video:{clip}", "--serial", pty.path,
+                          "--frames", 5])
+    finally:
+        pty.close()
+    assert result.returncode == 2, result.stderr[-3000:]
+    assert (f"source video:{clip}: frame size 2x2: at least 3 px wide and 4 px high; set [source] width and "
+            "height to a size the engine takes") in result.stderr, result.stderr[-3000:]
+    assert "[engine]" not in result.stderr and "Traceback" not in result.stderr
 
 
 def test_a_recording_without_one_readable_frame_is_an_error(tmp_path):
@@ -354,6 +371,33 @@ def test_sigterm_stops_cleanly_with_systemd_notifications(tmp_path):
     assert "<6>emdflowd: SIGTERM: stopping" in err            # journald priority prefix
     assert "<6>emdflowd: total:" in err                      # final counters on the way out
     assert parse_mavlink(data)
+
+
+def test_sighup_while_starting_up_does_not_end_the_daemon(tmp_path):
+    """A SIGHUP (logrotate's) that arrives while the daemon still loads its configuration,
+    before the loop's handlers exist, killed it silently (exit by signal: a clean stop to
+    systemd, no restart): main() ignores it from its first line. The signal is sent from
+    inside the configuration loading, so the moment is exact, not a race the test wins."""
+    config = _config(tmp_path, "[source]\nwidth = 96\nheight = 72\n")
+    pty = PtyPair()
+    drain = Drain(pty.master)
+    script = ("import os, signal, sys\n"
+              "import firmware_py.cli as cli\n"
+              "load = cli.load_config\n"
+              "def loading(path):\n"
+              "    os.kill(os.getpid(), signal.SIGHUP)\n"
+              "    return load(path)\n"
+              "cli.load_config = loading\n"
+              "sys.exit(cli.main(sys.argv[1:]))\n")
+    try:
+        result = subprocess.run([sys.executable, "-c", script, "--config", str(config), "--source", "synthetic:u=1,v=1",
+                                 "--serial", pty.path, "--frames", "20"],
+                                capture_output=True, text=True, timeout=120, env=dict(os.environ))
+    finally:
+        drain.stop()
+        pty.close()
+    assert result.returncode == 0, (result.returncode, result.stderr[-3000:])
+    assert "processed 20 frames (--frames): stopping" in result.stderr
 
 
 def test_sighup_reopens_the_message_log_and_keeps_flying(tmp_path):

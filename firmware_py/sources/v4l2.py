@@ -134,6 +134,19 @@ V4L2_MAJOR = 81
 MAX_DEVICE_INDEX = 255
 
 
+class _NoDevice(Exception):
+    """No device node for a camera given by its index."""
+
+
+def _open_capture(device, api):
+    """OpenCV's capture of ``device``; a camera given by its index whose node is missing
+    raises :class:`_NoDevice` first (OpenCV would fail too, with two warnings of its own on
+    stderr at every retry, and the message would blame a busy camera or permissions)."""
+    if isinstance(device, int) and not Path(f"/dev/video{device}").exists():
+        raise _NoDevice(f"/dev/video{device}")
+    return cv2.VideoCapture(device, api)
+
+
 def parse_device(target: str) -> str | int:
     """``/dev/video0`` → that path; ``0`` → index 0; anything else is an error."""
     if target.isdecimal():
@@ -181,8 +194,9 @@ class V4L2Source(FrameSource):
         Manual exposure time, µs; None leaves auto exposure on.
     gain : float or None
         Manual gain in the driver's units; None leaves it alone.
-    capture_factory : callable
+    capture_factory : callable, optional
         ``(device, api) -> VideoCapture``; the seam the tests replace (no camera here).
+        Default: OpenCV's, after checking that an index's ``/dev/videoN`` exists.
     bad_frames_before_reopen : int
         Unconvertible buffers in a row after which :meth:`read` gives up with
         :class:`SourceError` (fewer are skipped and counted in :attr:`bad_frames`).
@@ -193,7 +207,7 @@ class V4L2Source(FrameSource):
     def __init__(self, device: str, *, width: int = 320, height: int = 240, fps: float = 100.0,
                  pixel_format: str = "GREY", buffer_count: int = 2,
                  exposure_us: float | None = None, gain: float | None = None,
-                 capture_factory=cv2.VideoCapture, bad_frames_before_reopen: int = BAD_FRAMES_BEFORE_REOPEN):
+                 capture_factory=None, bad_frames_before_reopen: int = BAD_FRAMES_BEFORE_REOPEN):
         self.uri = f"v4l2:{device}"
         self.device = parse_device(device)
         self.width, self.height, self.fps = int(width), int(height), float(fps)
@@ -205,7 +219,7 @@ class V4L2Source(FrameSource):
         self.buffer_count = int(buffer_count)
         self.exposure_us = exposure_us
         self.gain = gain
-        self._factory = capture_factory
+        self._factory = capture_factory or _open_capture
         self._cap = None
         self._size = (self.width, self.height)   # what the driver delivers, px
         self._size_reported = False
@@ -232,6 +246,8 @@ class V4L2Source(FrameSource):
                                         "/dev/videoN or a /dev/ symlink to one")
         try:
             cap = self._factory(self.device, cv2.CAP_V4L2)
+        except _NoDevice as exc:
+            raise SourceError(f"{self.uri}: {exc} does not exist (camera unplugged?)") from None
         except cv2.error as exc:  # OpenCV refusing the device outright
             raise SourceError(f"{self.uri}: cannot open the camera: {str(exc).strip()}") from exc
         if not cap.isOpened():
