@@ -218,8 +218,7 @@ class EngineParams:
         Compute the summary's evidence next to the detector (default True): the
         orientation and position histograms that :func:`emdflow.summarize` and
         :func:`emdflow.cues.looming_cues` read. False gives the dense field (``u``, ``v``)
-        and the frame's counters only, 16–20 % faster at 640×480 (24–29 % with the
-        diagonal evidence; README, "Speed"), for a
+        and the frame's counters only, about 30 % faster at 640×480 (README, "Speed"), for a
         caller that never summarises (a researcher's dense flow); those two functions then
         refuse the field, and so do the command-line tools, which summarise every frame.
         The detections do not change.
@@ -236,7 +235,7 @@ class EngineParams:
         it with little sideways motion. The paper's model on random flights at 320×240:
         6.3 % / 1.96° median error instead of 8.9 % / 2.37° (both with the summary's former
         search, ``SummaryOptions(search_climbs=0)``), for 9–16 % more engine time
-        at 640×480 (README, "Diagonal evidence" and "The diagonal evidence's cost"). False
+        at 640×480 (README, "Diagonal evidence"; docs/speed-history.md). False
         gives the former evidence and tables.
     """
 

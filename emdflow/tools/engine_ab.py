@@ -7,7 +7,7 @@ and times both engines' ``FlowEstimator.update`` on the same camera-flight frame
 alternating blocks (default 12 rounds of 50 frames, each block after two untimed frames,
 the order swapped every round); it prints both medians and the median over the rounds of
 each round's "other / this" ratio (> 1: this checkout is faster). Against an identical
-checkout it spread 0.95-1.09 over several runs here (README, "Speed"): smaller differences
+checkout it spread 0.95-1.09 over several runs here (docs/speed-history.md): smaller differences
 are noise::
 
     git worktree add /tmp/before HEAD~1
