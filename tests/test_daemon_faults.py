@@ -66,16 +66,21 @@ def test_a_video_file_that_ends_stops_the_daemon_after_its_last_frame(tmp_path, 
         assert flows[-1].quality > 0 or re.search(r"uneven [1-9]", err), [m.quality for m in flows]
 
 
+def _run_on_a_pty(tmp_path, source, *, frames):
+    """``emdflowd`` on ``source`` with the default configuration, its port a fresh pty;
+    returns the finished process."""
+    pty = PtyPair()
+    try:
+        return run_cli(["--config", _config(tmp_path), "--source", source, "--serial", pty.path, "--frames", frames])
+    finally:
+        pty.close()
+
+
 def test_a_recording_of_a_size_the_engine_cannot_take_names_the_file(tmp_path):
     """A file's own frame size outside the engine's limits is the source's problem, and
     [source] width and height its fix: the message said "[engine]: frame size 2x2"."""
     clip = write_video(tmp_path / "dot.mkv", np.zeros((5, 2, 2), np.uint8), fps=50)
-    pty = PtyPair()
-    try:
-        result = run_cli(["--config", _config(tmp_path), "--source", f"video:{clip}", "--serial", pty.path,
-                          "--frames", 5])
-    finally:
-        pty.close()
+    result = _run_on_a_pty(tmp_path, f"video:{clip}", frames=5)
     assert result.returncode == 2, result.stderr[-3000:]
     assert (f"source video:{clip}: frame size 2x2: at least 3 px wide and 4 px high; set [source] width and "
             "height to a size the engine takes") in result.stderr, result.stderr[-3000:]
@@ -88,12 +93,7 @@ def test_a_recording_without_one_readable_frame_is_an_error(tmp_path):
     clip = write_video(tmp_path / "whole.mkv", flight_frames(12, width=96, height=72), fps=50)
     cut = tmp_path / "cut.mkv"
     cut.write_bytes(clip.read_bytes()[:700])
-    pty = PtyPair()
-    try:
-        result = run_cli(["--config", _config(tmp_path), "--source", f"video:{cut}", "--serial", pty.path,
-                          "--frames", 50])
-    finally:
-        pty.close()
+    result = _run_on_a_pty(tmp_path, f"video:{cut}", frames=50)
     assert result.returncode == 2, result.stderr[-3000:]
     assert "cut.mkv" in result.stderr and "Traceback" not in result.stderr
     assert "ended before its first frame" in result.stderr or "video file" in result.stderr
