@@ -39,8 +39,9 @@ Timing model
   typical interval before the keep-alive starts (no later than :data:`TIMEOUT_MARGIN_S`
   before the autopilot's timeout unless the stream itself is that slow): it is slow, not
   blind. And whatever the stream, a keep-alive also goes out :data:`TIMEOUT_MARGIN_S`
-  before the timeout counted from the last *message* once the next frame is overdue: at a
-  low message rate the last report can precede the last frame by a whole period.
+  before the timeout counted from the last *message* once the next frame is overdue (by
+  :data:`OVERDUE_US`, or a quarter of its interval): at a low message rate the last report
+  can precede the last frame by a whole period.
 * **Where the autopilot's interval starts.** INAV divides a
   message's counts by the time since the *previous message*, and PX4 integrates its own gyro
   from the previous message on; so any message starts the autopilot's next interval.
@@ -64,8 +65,8 @@ from .message_log import MessageLog
 from .serial_port import OutgoingMessage, SerialTransport
 
 __all__ = ["FlowSample", "LinkConfig", "FlowLink", "choose_message_rate", "AUTOPILOTS", "PROTOCOLS",
-           "AUTOPILOT_PROTOCOLS", "MSP_ARDUPILOT", "protocol_refusal", "BLIND_RATE_HZ", "MIN_MESSAGE_RATE_HZ", "MIN_RATE_REASON", "FRESH_REPORT_US",
-           "FLOOR_REPORTS_HZ", "resolve_protocol", "line_problem"]
+           "AUTOPILOT_PROTOCOLS", "MSP_ARDUPILOT", "protocol_refusal", "BLIND_RATE_HZ", "MIN_MESSAGE_RATE_HZ",
+           "MIN_RATE_REASON", "FRESH_REPORT_US", "FLOOR_REPORTS_HZ", "resolve_protocol", "line_problem"]
 
 log = logging.getLogger(__name__)
 
@@ -91,6 +92,11 @@ SLOW_STREAM_WAIT = 1.25
 #: Keep-alives start at least this long before the autopilot's timeout when they can, s
 #: (serial latency, the daemon's 10 ms loop).
 TIMEOUT_MARGIN_S = 0.05
+#: How late past its typical interval a frame may reach the link before a keep-alive near
+#: the autopilot's timeout takes it for a stall, µs (at least; a quarter of the interval
+#: when that is more): the daemon hands a frame over after the engine and the summary, whose
+#: time varies (garbage collection, a slow frame), and a keep-alive costs the pending report.
+OVERDUE_US = 15_000
 #: Fraction of the line's capacity the link may use (the rest absorbs jitter and bursts).
 BUSY_FRACTION = 0.6
 #: Fewest flow reports per second, whatever the baud rate or ``message_rate_hz``: ArduPilot's
@@ -636,17 +642,18 @@ class FlowLink:
 
     def _timeout_near(self, now: int, since_submit: int) -> bool:
         """Whether the autopilot's timeout is :data:`TIMEOUT_MARGIN_S` away with the next
-        frame overdue (:data:`SLOW_STREAM_WAIT` of the typical interval): the stream has
-        stalled before it counts as blind, so a keep-alive goes out now. Blindness is judged
-        from the last frame, the timeout from the last message: at a low message rate (7 Hz,
-        the floor) the last message can precede the last frame by a whole period, and
-        waiting for blindness then left INAV 270-290 ms without one (its timeout: 200 ms)."""
+        frame overdue (its typical interval plus :data:`OVERDUE_US`): the stream has stalled
+        before it counts as blind, so a keep-alive goes out now. Blindness is judged from
+        the last frame, the timeout from the last message: at a low message rate (7 Hz, the
+        floor) the last message can precede the last frame by a whole period, and waiting
+        for blindness then left INAV 270-290 ms without one (its timeout: 200 ms)."""
         if self._last_flow_host_us is None:
             return False
         if now - self._last_flow_host_us < (self.autopilot_timeout_s - TIMEOUT_MARGIN_S) * 1e6:
             return False
         typical = self._submit_intervals.typical
-        return typical is not None and since_submit > SLOW_STREAM_WAIT * typical
+        return typical is not None and since_submit > typical + max((SLOW_STREAM_WAIT - 1.0) * typical,
+                                                                   OVERDUE_US)
 
     def _blind_keepalive(self, now: int) -> None:
         if self._last_submit_host_us is not None:
