@@ -182,9 +182,9 @@ class SteadySubset:
     "process whatever arrives while idle" can starve it under load. Instead the capture
     side passes frames whose index is k apart. k follows robust statistics of the last
     ``window`` processing times: it rises as soon as the *median* needs more than k frame
-    intervals, and falls one step only after the *90th percentile* has fitted into fewer
-    intervals for ``relax_s`` — a single slow frame (garbage collection, a kernel build)
-    changes nothing, a lasting load changes k at once.
+    intervals, and falls only after the *90th percentile* has fitted into fewer intervals for
+    ``relax_s``, to what that percentile needs but at most by half — a single slow frame
+    (garbage collection, a kernel build) changes nothing, a lasting load changes k at once.
 
     Parameters
     ----------
@@ -244,10 +244,12 @@ class SteadySubset:
         if typical > self.k:
             self._set(typical)
             self._low_since = None
-        elif self._need(self._quantile(0.9)) < self.k:
+        elif (need90 := self._need(self._quantile(0.9))) < self.k:
             self._low_since = self._low_since if self._low_since is not None else now_s
             if now_s - self._low_since >= self.relax_s:
-                self._set(self.k - 1)
+                # at most halving, at once to what the 90th percentile needs when that is
+                # more: one step per relax_s took 6 min to come back from k = 115
+                self._set(max(need90, self.k // 2))
                 self._low_since = None
         else:
             self._low_since = None
@@ -313,7 +315,8 @@ class SourceKeeper:
         self.busy_with = ""
         #: a recording (file, replay) reached its end: nothing more to read, nothing to reopen
         self.ended = False
-        #: ... because a read failed (the daemon then exits 1)
+        #: ... because a read failed (the daemon then exits 2: bad input, which
+        #: deploy/emdflowd.service does not restart into a replay from the first frame)
         self.failed = False
 
     def adopt(self, source: FrameSource) -> None:
@@ -695,7 +698,7 @@ class Daemon:
             log.warning("[engine] evidence_row_step = %d samples %d of the %d processed rows: the summary "
                         "sees too few detections and reports quality 0 on most frames; at most %d here "
                         "(0, automatic, samples about 60)", step, rows, self.height,
-                        max(1, self.height // _MIN_EVIDENCE_ROWS))
+                        max(1, (self.height - 1) // (_MIN_EVIDENCE_ROWS - 1)))
 
     # -- the loop ---------------------------------------------------------------------
     def stop(self) -> None:
@@ -814,8 +817,8 @@ class Daemon:
                 self._process(frame, now_s)
             elif ended:  # a recording's last frame is processed: send what is queued, stop
                 self.link.service(host_us())
-                if keeper.failed:  # (logged where it failed)
-                    self.exit_code = 1
+                if keeper.failed:  # (logged where it failed; 2: the unit does not restart it)
+                    self.exit_code = 2
                 elif self.stats.frames_in == 0:  # not one frame: nothing was flown, say so
                     log.error("source %s ended before its first frame (a truncated file, or a codec "
                               "this OpenCV cannot decode)", self.config.source.uri)

@@ -149,9 +149,10 @@ def test_source_that_raises_is_reopened_and_link_reports_blind(tmp_path, caplog)
 
 @pytest.mark.parametrize("threading", ["single", "capture-thread"])
 def test_a_recording_whose_read_fails_stops_instead_of_replaying(tmp_path, caplog, threading):
-    """A file that fails to read part-way (an I/O error) ends the run with exit 1 and the
-    error logged: reopened like a camera it started again at frame 0, flew the same frames
-    again and, failing at the same place, looped until --frames stopped it."""
+    """A file that fails to read part-way (an I/O error) ends the run with exit 2 (bad
+    input: systemd's unit does not restart it) and the error logged: reopened like a camera
+    it started again at frame 0, flew the same frames again and, failing at the same place,
+    looped until --frames stopped it."""
     caplog.set_level(logging.INFO, logger="emdflowd")
     clip = write_video(tmp_path / "part.mkv", flight_frames(30, width=96, height=72), fps=50)
     made = []
@@ -163,7 +164,7 @@ def test_a_recording_whose_read_fails_stops_instead_of_replaying(tmp_path, caplo
     code, daemon, msgs = _run_inprocess(tmp_path, factory, frames=200,
                                         settings=[("source", "uri", f"video:{clip}"),
                                                   ("daemon", "threading", threading)])
-    assert code == 1
+    assert code == 2
     assert len(made) == 1 and daemon.stats.reopens == 0
     assert daemon.stats.processed <= 19  # the frames before the failure, once (a subset may skip some)
     assert "read failed (USB camera unplugged): a recording is not reopened" in caplog.text
@@ -183,7 +184,7 @@ def test_an_evidence_row_step_that_starves_the_summary_is_named_at_start(tmp_pat
     code, _, msgs = _run_inprocess(tmp_path, factory, frames=30, settings=[("engine", "evidence_row_step", 120)])
     assert code == 0
     assert ("[engine] evidence_row_step = 120 samples 1 of the 72 processed rows: the summary sees too few "
-            "detections and reports quality 0 on most frames; at most 4 here") in caplog.text
+            "detections and reports quality 0 on most frames; at most 5 here") in caplog.text
     assert not any(m.quality for m in msgs if m.get_type() == "OPTICAL_FLOW")  # (what it warns of)
     caplog.clear()
     code, _, msgs = _run_inprocess(tmp_path, factory, frames=30, settings=[("engine", "evidence_row_step", 4)])

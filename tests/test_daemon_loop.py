@@ -52,6 +52,13 @@ def test_steady_subset_follows_an_engine_far_slower_than_the_camera():
     accepted = _feed(subset, 0, 1500, 0.28)
     assert subset.k == 33                                         # ceil(0.28 * 1.15 / 0.01)
     assert set(np.diff(accepted[-10:])) == {33}
+    # a second a frame for 30 s, then the load is gone: k comes back within a minute (one
+    # step per 2 s took 356 s from k = 115, the frames more than 0.45 s apart meanwhile:
+    # too far apart for a good report)
+    _feed(subset, 1500, 3000, 1.0)
+    assert subset.k == 115
+    _feed(subset, 4500, 6000, 0.004)                              # 60 s of frames
+    assert subset.k == 1
 
 
 def test_steady_subset_ignores_single_slow_frames_but_not_drops():
