@@ -163,10 +163,9 @@ class LinkConfig:
     autopilot : {"ardupilot", "px4", "inav", "both"}
         Which controller listens; selects protocol and message set.
     protocol : {None, "mavlink", "msp"}
-        None derives it from ``autopilot`` (inav → msp, others → mavlink). ``"mavlink"`` given
-        explicitly sends both flow messages (unless the autopilot is "ardupilot" or "px4");
-        ``"msp"`` also serves Betaflight (as ``"inav"``). Pairs that cannot work are refused
-        (:data:`AUTOPILOT_PROTOCOLS`).
+        None derives it from ``autopilot`` (inav → msp, others → mavlink); given, it must be
+        the autopilot's (:data:`AUTOPILOT_PROTOCOLS`: a pair that cannot work is refused).
+        ``"msp"`` also serves Betaflight (as ``"inav"``).
     focal_length_px : float
         Focal length in pixels at the processed resolution.
     mounting_rotation_deg : {0, 90, 180, 270}

@@ -71,11 +71,9 @@ _INT16_MAX = 32767
 
 
 def message_set_for(config: LinkConfig) -> tuple[str, ...]:
-    """The flow messages a config sends: the autopilot's set; an explicit
-    ``protocol="mavlink"`` sends both unless the autopilot is "ardupilot" or "px4"."""
-    if config.protocol == "mavlink" and config.autopilot not in ("ardupilot", "px4"):
-        return MESSAGE_SETS["both"]
-    return MESSAGE_SETS.get(config.autopilot, MESSAGE_SETS["both"])
+    """The flow messages a config sends: its autopilot's set (a MAVLink config's autopilot
+    is "ardupilot", "px4" or "both": :class:`LinkConfig` refuses "inav" with MAVLink)."""
+    return MESSAGE_SETS[config.autopilot]
 
 
 def new_encoder(*, sysid: int, compid: int) -> mavlink2.MAVLink:
@@ -111,7 +109,7 @@ class MavlinkLink(FlowLink):
     Parameters
     ----------
     config : LinkConfig
-        ``autopilot`` (or an explicit ``protocol="mavlink"``) selects the message set.
+        ``autopilot`` selects the message set.
     """
 
     protocol = "mavlink"
