@@ -9,7 +9,7 @@ from .params import EngineParams, _is_whole
 from .reference import (STAT_BRIGHTENING, STAT_STEP_CHANGED, STAT_U_DETECTIONS, STAT_V_DETECTIONS,
                         ReferenceEngine, _Codes)
 
-__all__ = ["FlowEstimator", "BACKENDS"]
+__all__ = ["FlowEstimator", "FrameSizeError", "BACKENDS"]
 
 BACKENDS = ("opencl", "numpy")
 #: Largest frame (pixels): the kernels' 32-bit sums (the frame's brightness for the
@@ -44,6 +44,12 @@ def _is_brightness_step(stats, pixels: int) -> bool:
         return False
     bright = int(stats[STAT_BRIGHTENING]) / changed
     return bright > 1 - STEP_POLARITY or bright < STEP_POLARITY
+
+
+class FrameSizeError(ValueError):
+    """A frame size the engine cannot take (too small, too many pixels, too wide): a
+    ``ValueError`` that callers can tell from a bad option (the daemon and the tools then
+    name the source of the frames, not the engine's settings)."""
 
 
 class FlowEstimator:
@@ -154,13 +160,13 @@ class FlowEstimator:
         if width < 3 or height < 4:
             # the texture statistic samples the even interior rows: a 3-row frame has none,
             # and its summary would be blind for good
-            raise ValueError(f"frame size {width}x{height}: at least 3 px wide and 4 px high")
+            raise FrameSizeError(f"frame size {width}x{height}: at least 3 px wide and 4 px high")
         if width * height > MAX_PIXELS:
-            raise ValueError(f"frame size {width}x{height}: at most {MAX_PIXELS} pixels (e.g. 4096x4096) "
+            raise FrameSizeError(f"frame size {width}x{height}: at most {MAX_PIXELS} pixels (e.g. 4096x4096) "
                              "are supported")
         if width > MAX_WIDTH:
             # (wider, OpenCL's texture and contrast counters read 0: a blind summary)
-            raise ValueError(f"frame size {width}x{height}: at most {MAX_WIDTH} px wide")
+            raise FrameSizeError(f"frame size {width}x{height}: at most {MAX_WIDTH} px wide")
         if backend not in BACKENDS:
             raise ValueError(f"backend={backend!r}: expected one of {', '.join(BACKENDS)}")
         self.width, self.height, self.backend = int(width), int(height), backend

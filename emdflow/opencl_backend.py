@@ -112,8 +112,8 @@ def _device_choice(device) -> tuple:
     """``(choice, from_env)``: the caller's device choice, else EMDFLOW_OPENCL_DEVICE's
     (``from_env`` True); choice None: automatic. A choice is an index (an int, numpy's too,
     or a string of decimal digits) or a name (a str); anything else (True, 1.5, a list) is a
-    ValueError (as every other bad parameter) rather than a guess. An empty or blank name is no choice (the variable then
-    applies; " " matched any name with a space)."""
+    ValueError (as every other bad parameter) rather than a guess. An empty or blank name is
+    no choice (the variable then applies; " " matched any name with a space)."""
     if device is not None:
         if _is_whole(device):
             return int(device), False

@@ -34,6 +34,7 @@ import numpy as np
 
 import emdflow
 from emdflow.cues import looming_cues
+from emdflow.estimator import FrameSizeError
 
 from .angular import TURN_GAIN_WARNING, RecentIntervals, apply_mounting, fov_deg_from_focal_length_px, turn_gain
 from .clock import host_us
@@ -588,13 +589,13 @@ class Daemon:
                         "OpenCL; expect a low frame rate. Install an OpenCL driver for flight use.")
         try:
             return emdflow.FlowEstimator(width, height, backend=backend, **self.config.engine.estimator_options())
+        except FrameSizeError as exc:  # the source's size, not an [engine] setting: exit 2
+            s = self.config.source
+            if s.width is None:
+                raise ConfigError(f"source {s.uri}: {exc}; set [source] width and height to a size "
+                                  "the engine takes") from None
+            raise ConfigError(f"[source] width and height: {exc}") from None
         except ValueError as exc:  # a setting, not a failure: exit 2 (systemd does not restart)
-            if str(exc).startswith("frame size"):  # the source's size, not an [engine] setting
-                s = self.config.source
-                if s.width is None:
-                    raise ConfigError(f"source {s.uri}: {exc}; set [source] width and height to a size "
-                                      "the engine takes") from None
-                raise ConfigError(f"[source] width and height: {exc}") from None
             # (the engine's own message names EMDFLOW_OPENCL_DEVICE when that made the choice)
             raise ConfigError(str(exc) if "(EMDFLOW_OPENCL_DEVICE)" in str(exc) else f"[engine]: {exc}") from None
 

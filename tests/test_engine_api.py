@@ -191,8 +191,13 @@ def test_parameters_accept_numpy_scalars_and_channel_sets_without_scale_1():
 @pytest.mark.parametrize("size", [(2, 50), (50, 0), (50, 3), (50.5, 40), (4097, 4096), (1 << 17, 129),
                                   (np.uint16(4097), np.uint16(4096)), (np.int16(8000), np.int16(8000))])
 def test_bad_sizes(size):
-    with pytest.raises(ValueError, match="frame size|integer"):
+    from emdflow.estimator import FrameSizeError
+
+    with pytest.raises(ValueError, match="frame size|integer") as caught:
         emdflow.FlowEstimator(*size, backend="numpy")
+    # a size out of range is a FrameSizeError (the daemon and the tools name the frames'
+    # source for it); a size that is no whole number is a plain bad parameter
+    assert isinstance(caught.value, FrameSizeError) == str(caught.value).startswith("frame size")
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

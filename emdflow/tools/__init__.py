@@ -40,9 +40,9 @@ import ast
 import contextlib
 
 __all__ = ["DIS_MIN_LONG_SIDE", "ToolError", "add_engine_arguments", "check_positive", "engine_kwargs",
-           "frame_size_problem", "frames_origin", "interp_weights", "keyword_options", "make_estimator", "matplotlib_missing",
-           "missing_folder", "number_list", "output_problem", "plot_type_problem", "progress_bar",
-           "refuse_same_outputs", "texture_names_problem"]
+           "frame_size_problem", "frames_origin", "interp_weights", "keyword_options", "make_estimator",
+           "matplotlib_missing", "missing_folder", "number_list", "output_problem", "plot_type_problem",
+           "progress_bar", "refuse_same_outputs", "texture_names_problem"]
 
 #: OpenCV DIS (preset ULTRAFAST, patches of 8 px) needs a frame whose longer side is at
 #: least this many px (measured with OpenCV 5.0 for every size from 8x8 to 79x79: it
@@ -339,6 +339,7 @@ def make_estimator(args, width: int, height: int, *, frames_from: str | None = N
         message suggests ``--backend numpy``).
     """
     from emdflow import FlowEstimator
+    from emdflow.estimator import FrameSizeError
 
     kw = engine_kwargs(args)
     if kw.get("summary_evidence") is False:  # (other values: FlowEstimator's own error)
@@ -349,9 +350,9 @@ def make_estimator(args, width: int, height: int, *, frames_from: str | None = N
         return FlowEstimator(int(width), int(height), backend=backend, **kw)
     except TypeError as e:
         raise ToolError(f"engine options: {e}", 2) from None
+    except FrameSizeError as e:  # the input's fault, not an option's
+        raise ToolError(f"{frames_from}: {e}" if frames_from else str(e), 2) from None
     except ValueError as e:
-        if frames_from and str(e).startswith("frame size"):  # the input's fault, not an option's
-            raise ToolError(f"{frames_from}: {e}", 2) from None
         raise ToolError(f"engine options: {e}", 2) from None
     except (RuntimeError, ImportError) as e:
         from emdflow.opencl_backend import exception_summary
