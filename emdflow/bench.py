@@ -22,9 +22,9 @@ blocks ran seconds apart under the same load):
 
 ``emdflow bench --stages`` prints instead where one frame's time goes: the device time of
 each command (upload, the four kernels, download) from OpenCL profiling events (on a CPU
-device the kernels read host memory: the caller's frame itself where it can, else the
-host's copy of it, which is then "upload"; and there is no download: the host reads the
-result where the kernels wrote it), the gaps between them, the host's wall time per frame and the time of
+device the frame and result buffers are host memory: "upload" is then the host's copy of
+the frame into it, and there is no download: the host reads the result where the kernels
+wrote it), the gaps between them, the host's wall time per frame and the time of
 ``summarize`` after it.
 """
 
@@ -194,8 +194,7 @@ def profile_stages(width: int, height: int, *, frames: int = 200, backend_kwargs
     """Device time of each command of a frame (OpenCL profiling events), median ms.
 
     The engine runs on a profiling queue over a camera flight; ``"wall"`` is the host's
-    time for the whole ``step`` (upload to downloaded result; on a CPU device the kernels
-    read the frame in place and read back nothing, so neither appears), ``"gaps"`` what the device
+    time for the whole ``step`` (upload to downloaded result), ``"gaps"`` what the device
     timeline spends between the first command's start and the last one's end outside
     the commands (scheduling, thread wake-ups), ``"decode"`` the host's time to unpack
     the int8 codes (paid only when the dense field is read), ``"summary"`` the host's time
@@ -218,9 +217,8 @@ def profile_stages(width: int, height: int, *, frames: int = 200, backend_kwargs
     gaps = []
     kept = []
     for i in range(frames):
-        if engine.frame_host is not None and not engine.reads_in_place(clip[i % len(clip)]):
-            # a CPU device reads the frame from host memory: the caller's frame itself where
-            # it can (no upload), else the host copies it into a buffer: that copy's time
+        if engine.frame_host is not None:
+            # a CPU device reads the frame from host memory: the upload is the host's copy
             t0 = time.perf_counter()
             np.copyto(engine.frame_host, clip[i % len(clip)])
             per_stage["upload"].append((time.perf_counter() - t0) * 1e3)

@@ -211,12 +211,6 @@ def _shared_buffer(cl, ctx, queue, device, size: int, host_writes: bool):
     return buf, host
 
 
-#: Bytes past a frame's end that the kernels' vector loads of its last row may read.
-_FRAME_TAIL = 64
-#: Memory page size (a frame read in place must not end within _FRAME_TAIL of a page end).
-_PAGE = 4096
-
-
 def _ceil(a: int, b: int) -> int:
     return -(-a // b)
 
@@ -556,7 +550,7 @@ class OpenCLEngine:
         self.debug = debug
         mf = cl.mem_flags
         ctx = self.ctx
-        tail = _FRAME_TAIL  # vector loads of the last row may run past its end
+        tail = 64  # vector loads of the last row may run past its end
         shared = _shared_buffer(cl, ctx, self.queue, self.device, width * height + tail, host_writes=True)
         if shared is not None:
             self.frame_buf, host = shared
@@ -564,8 +558,6 @@ class OpenCLEngine:
             self.frame_host = host[: width * height].reshape(height, width)
         else:
             self.frame_buf, self.frame_host = cl.Buffer(ctx, mf.READ_ONLY, width * height + tail), None
-        #: the buffer the kernels read the frame from (frame_buf, or the caller's frame)
-        self._frame_arg = self.frame_buf
         self.p_buf = cl.Buffer(ctx, mf.READ_WRITE, lay.P_SIZE * lay.P_SLOTS + tail)
         self.sat_buf = cl.Buffer(ctx, mf.READ_WRITE, 2 * lay.sat_elems * lay.SAT_SLOTS + tail)
         self.dsat_buf = cl.Buffer(ctx, mf.READ_WRITE, (2 * lay.sat_elems if lay.DSAT else 0) + tail)
@@ -683,32 +675,6 @@ class OpenCLEngine:
     #: names of all the commands a frame may have (see ``stages``)
     STAGES = ("upload", "prefilter_columns", "integral_rows", "ternary_states", "velocity_detectors", "download")
 
-    def reads_in_place(self, frame: np.ndarray) -> bool:
-        """Whether the kernels read ``frame`` where it is, without a copy: on a CPU device
-        (which reads host memory) a C-contiguous, writable frame whose memory page also
-        holds the kernels' furthest read, a few vector loads past its last row (the next
-        page may not be mapped)."""
-        if self.frame_host is None or not (frame.flags.c_contiguous and frame.flags.writeable):
-            return False
-        end = frame.ctypes.data + frame.nbytes
-        return (end - 1) // _PAGE == (end + _FRAME_TAIL - 1) // _PAGE
-
-    def _frame_in_place(self, frame: np.ndarray):
-        """A buffer over the caller's frame itself, set as the kernels' frame argument, or
-        None: then the frame is copied into the shared frame buffer (:meth:`reads_in_place`;
-        the copy took ~0.02 ms of a 640x480 frame here, 6 % of the dense field's time)."""
-        if not self.reads_in_place(frame):
-            return None
-        cl = self._cl
-        try:
-            buf = cl.Buffer(self.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.USE_HOST_PTR, hostbuf=frame)
-        except cl.Error:  # pragma: no cover - depends on the runtime
-            return None
-        self._k_prefilter.set_arg(0, buf)
-        self._k_states.set_arg(4, buf)
-        self._frame_arg = buf
-        return buf
-
     def step_packed(self, frame: np.ndarray):
         """Process one frame; returns ``(codes, stats, hist, positions)``.
 
@@ -747,15 +713,8 @@ class OpenCLEngine:
             self._k_prefilter.set_arg(3, self.result)
             self._k_states.set_arg(5, self.result)
             self._k_evd.set_arg(1, self.result)
-        frame_view = None
         if self.frame_host is not None:
-            frame_view = self._frame_in_place(frame)
-            if frame_view is None:
-                np.copyto(self.frame_host, frame)
-                if self._frame_arg is not self.frame_buf:
-                    self._k_prefilter.set_arg(0, self.frame_buf)
-                    self._k_states.set_arg(4, self.frame_buf)
-                    self._frame_arg = self.frame_buf
+            np.copyto(self.frame_host, frame)
             upload = ()
         else:
             upload = (cl.enqueue_copy(q, self.frame_buf, np.ascontiguousarray(frame), is_blocking=False),)
@@ -785,8 +744,6 @@ class OpenCLEngine:
             events += (cl.enqueue_copy(q, host, self.result, is_blocking=True),)
             views = self._views(host)
             planes = views[0]
-        if frame_view is not None:
-            frame_view.release()  # (the kernels are done with the caller's frame)
         if self.trace is not None:  # profiling (emdflow bench --stages)
             self.trace.append(events)
         self.t += 1

@@ -370,49 +370,6 @@ def test_both_transfer_paths_are_exact(monkeypatch, shared):
     assert _compare(width, height, frames) > 0
 
 
-def _frame_ending_before_a_page_end(frame, gap):
-    """A copy of ``frame`` whose memory ends ``gap`` bytes before a page boundary (with 10,
-    the kernels' vector loads past its last row would reach the next page, which may not
-    be mapped; with 100 they stay in its own)."""
-    raw = np.zeros(frame.nbytes + 3 * 4096, np.uint8)
-    start = (-(raw.ctypes.data + frame.nbytes + gap)) % 4096 + 4096
-    out = raw[start:start + frame.nbytes].reshape(frame.shape)
-    out[:] = frame
-    assert (out.ctypes.data + out.nbytes + gap) % 4096 == 0
-    return out
-
-
-def test_frames_read_in_place_or_copied_are_exact():
-    """On a CPU device the kernels read a C-contiguous, writable frame where the caller
-    keeps it (no copy); a read-only frame, a strided view, or one whose last row ends
-    within a vector load of a page end is copied into the engine's own buffer first. Taken
-    in any order, every frame gives the reference's codes, counters and histograms."""
-    width, height = 83, 45
-    probe = opencl_backend.OpenCLEngine(width, height, EngineParams())
-    if probe.frame_host is None:
-        pytest.skip("the OpenCL device does not share host memory")
-    flight = CameraFlight("grass", width=width, height=height, flow=(2.2, -1.4), noise_sigma=2, seed=7)
-    rendered = [flight.render(t) for t in range(12)]
-    frames, in_place = [], []
-    for t, frame in enumerate(rendered):
-        kind = t % 4
-        if kind == 1:
-            frame = frame.copy()
-            frame.flags.writeable = False
-        elif kind == 2:
-            wide = np.zeros((height, 2 * width), np.uint8)
-            wide[:, ::2] = frame
-            frame = wide[:, ::2]  # (a strided view)
-        elif kind == 3:
-            frame = _frame_ending_before_a_page_end(frame, 10)
-        else:
-            frame = _frame_ending_before_a_page_end(frame, 100)
-        frames.append(frame)
-        in_place.append(probe.reads_in_place(frame))
-    assert in_place == [True, False, False, False] * 3, in_place
-    assert _compare(width, height, frames) > 0
-
-
 def test_result_buffers_are_read_in_place_and_held_codes_copied_out(monkeypatch):
     """On a CPU device the frames take the result buffers in turn: a frame's bit planes
     are read where the kernels wrote them, not copied; codes still held when their buffer
