@@ -1196,7 +1196,9 @@ def _looks_static(field: FlowField, opts: "SummaryOptions") -> bool:
         return False
     scales = params.scales  # (sorted by EngineParams)
     coarse_scale = next((k for k in scales if k >= STATIC_SCALE), scales[-1])
-    if coarse_scale == scales[0]:
+    if coarse_scale == scales[0] or min(field.shape) < coarse_scale:
+        # (a frame too small for the coarse receptors has none that change: a 64x4 flight
+        # moving 2 px/frame read static, flow 0 at quality 191)
         return False
     return changed[params.channels.index((coarse_scale, 1))] < opts.static_noise_ratio * fine
 
@@ -1239,6 +1241,12 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
     if not isinstance(field.histogram, (np.ndarray, np.generic)):  # (a numpy scalar: its shape, below)
         raise ValueError(f"summarize(): the field's histogram is a {type(field.histogram).__name__}, "
                          "not an array (axis, code, bin)")
+    counts = field.histogram
+    if counts.dtype.kind == "f" and not np.isfinite(counts).all():
+        raise ValueError("summarize(): the field's histogram holds a NaN or infinite count")
+    if counts.dtype.kind in "if" and counts.size and counts.min() < 0:
+        # (a negative count made the fit's deviance NaN, which read as a perfect fit)
+        raise ValueError(f"summarize(): the field's histogram holds a negative count ({counts.min()})")
     shape = np.shape(field.histogram)
     if len(shape) == 3 and shape[0] != field.params.evidence_axes:
         raise ValueError(f"summarize(): the field's histogram has {shape[0]} detector axes, "

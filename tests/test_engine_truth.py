@@ -405,6 +405,11 @@ def test_cross_motion_flights_stay_over_the_photograph():
     assert _frame_error(blind, 12.0, 4.0)[1] == 180.0
     tilted = SimpleNamespace(quality=9, flow_x=1.0, flow_y=-1.0)
     assert _frame_error(tilted, 1.0, 1.0)[1] == pytest.approx(90.0)
+    # a zero reading with quality (a flight read static) has no direction: 180 deg, as
+    # emdflow eval counts it (it scored the true flow's polar angle: 0 deg for a flight
+    # along +x, 90 deg along +y)
+    static = SimpleNamespace(quality=191, flow_x=0.0, flow_y=0.0)
+    assert _frame_error(static, 0.25, 0.0) == (1.0, 180.0) == _frame_error(static, 0.0, 0.25)
 
 
 def test_cross_motion_command_refuses_bad_options(capsys):

@@ -397,6 +397,39 @@ def test_paper_model_at_its_floor_is_not_read_static():
     assert checked >= 20
 
 
+@pytest.mark.parametrize("size", [(64, 4), (4, 64)])
+def test_a_frame_too_small_for_the_coarse_receptors_is_not_read_static(size):
+    """The noise test compares the scale-1 receptors' changes with the scale-5 ones'; a
+    frame less than 5 px high or wide has no scale-5 receptor, whose share of changes is
+    then always 0: a ground moving 2 px/frame under a 64x4 view read static, flow 0 at
+    quality 191. It is motion the detector cannot follow: quality 0."""
+    width, height = size
+    rng = np.random.default_rng(2)
+    ground = (rng.random((height + 60, width + 60)) * 255).astype(np.uint8)
+    est = emdflow.FlowEstimator(width, height, backend="numpy", **MODELS["extended"])
+    for t in range(16):  # the ground moves (-2, -1) px/frame
+        field = est.update(np.ascontiguousarray(ground[20 + t:20 + t + height, 20 + 2 * t:20 + 2 * t + width]))
+    assert field.ready and field.changed_fraction[0] > SummaryOptions().static_changed
+    s = summarize(field)
+    assert not s.static and s.quality == 0, s
+
+
+def test_negative_or_non_finite_counts_are_refused():
+    """A hand-made histogram with a negative count made the fit's deviance NaN, which read
+    as a perfect fit (quality up); NaN or infinite counts failed deep inside the fit."""
+    hist = model_histogram((2.5, -1.4), seed=2)
+    assert summarize(_field(hist)).quality > 0
+    bad = hist.copy()
+    bad[0, 0, 5] = -5
+    with pytest.raises(ValueError, match=r"histogram holds a negative count \(-5\)"):
+        summarize(_field(bad))
+    for value in (np.nan, np.inf):
+        bad = hist.astype(np.float64)
+        bad[0, 0, 5] = value
+        with pytest.raises(ValueError, match="histogram holds a NaN or infinite count"):
+            summarize(_field(bad))
+
+
 def test_real_static_scene():
     est = emdflow.FlowEstimator(W, H, backend="opencl")
     flight = CameraFlight("brick", width=W, height=H, flow=(0.0, 0.0), noise_sigma=2.0, seed=2)

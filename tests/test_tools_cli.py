@@ -325,6 +325,18 @@ def test_plots_without_matplotlib(tmp_path, monkeypatch, capsys):
     assert "--plot b.png" in err and "matplotlib is not installed" in err
 
 
+def test_eval_accumulator_bins_any_error():
+    """An absurd per-pixel error (a flight at 10^17 px/frame) goes to the last bin of the
+    error histogram: its index overflowed int64 and bincount refused the negative value,
+    after the whole run."""
+    from emdflow.tools.evaluate import Accumulator
+
+    acc = Accumulator()
+    u = np.array([[1.0, np.nan]], np.float32)
+    acc.add_field(u, u, np.full((1, 2), 1e17), np.full((1, 2), 1e17))
+    assert acc.err_hist[-1] == 2 and acc.err_hist.sum() == 2
+
+
 def test_eval_truth_field_matches_the_renderer():
     """The exact per-pixel truth warps frame t−1 onto frame t (zoom + translation)."""
     from emdflow.tools.evaluate import fit_expansion, truth_field

@@ -936,12 +936,13 @@ def margin_sweep(paths, margins, out=print):
 
 
 def _frame_error(s, fu: float, fv: float) -> tuple[float, float]:
-    """(relative error, direction error in degrees) of summary ``s`` against the true flow;
-    a quality-0 frame counts as (1, 180)."""
-    if s.quality == 0:
-        return 1.0, 180.0
-    d = math.degrees(math.atan2(s.flow_y, s.flow_x) - math.atan2(fv, fu))
-    return math.hypot(s.flow_x - fu, s.flow_y - fv) / math.hypot(fu, fv), abs((d + 180) % 360 - 180)
+    """(relative error, direction error in degrees) of summary ``s`` against the true flow,
+    as ``emdflow eval`` counts it (:func:`emdflow.tools.evaluate.summary_errors`): a
+    quality-0 frame is (1, 180), and so is the direction of a zero reading (a static
+    reading of a moving flight scored the true flow's polar angle)."""
+    from emdflow.tools.evaluate import summary_errors
+
+    return summary_errors(s.flow_x, s.flow_y, s.quality, fu, fv)
 
 
 def _print_search_check(fields, sums, flows, err, options=None, out=print, limit_deg: float = 3.0):

@@ -320,7 +320,8 @@ class Accumulator:
             signed = np.abs(t) >= 0.1
             self.sign_total += int(np.count_nonzero(signed))
             self.sign_right += int(np.count_nonzero(np.sign(e[signed]) == np.sign(t[signed])))
-            idx = np.minimum((np.abs(e - t) / _ERR_STEP).astype(np.int64), _ERR_BINS - 1)
+            # (clipped before the cast: an error past 2^63 steps wrapped to a negative bin)
+            idx = np.minimum(np.abs(e - t) / _ERR_STEP, _ERR_BINS - 1).astype(np.int64)
             self.err_hist += np.bincount(idx, minlength=_ERR_BINS)
 
     def add_summary(self, sx, sy, quality, tx, ty) -> None:
