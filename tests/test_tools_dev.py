@@ -123,6 +123,13 @@ def cs(monkeypatch):
     (["evaluate", "--data", "no-such-file.npz"], "--data"),
     (["evaluate", "--size", "96x72", "--textures", "gravel", "--frames", "0"], "--frames"),
     (["evaluate", "--size", "4x4", "--textures", "gravel", "--frames", "1"], "--size"),
+    # (tracebacks from EngineParams or the renderer before, or garbage flown)
+    (["collect", "--evidence-row-step", "-1"], "--evidence-row-step -1"),
+    (["evaluate", "--size", "96x72", "--textures", "gravel", "--evidence-row-step", "5000"], "--evidence-row-step"),
+    (["evaluate", "--size", "96x72", "--textures", "gravel", "--offset", "nan"], "--offset nan"),
+    (["evaluate", "--size", "96x72", "--textures", "gravel", "--contrast", "-1"], "--contrast -1"),
+    (["evaluate", "--size", "96x72", "--textures", "gravel", "--contrast", "inf"], "--contrast inf"),
+    (["evaluate", "--size", "96x72", "--textures", "gravel", "--drift", "-5"], "--drift -5"),
 ])
 def test_calibrate_summary_refuses_bad_options(cs, tmp_path, capsys, argv, option):
     if argv[0] == "collect":

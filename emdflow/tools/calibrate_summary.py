@@ -158,7 +158,7 @@ from pathlib import Path
 
 import numpy as np
 
-from emdflow.params import GRADIENT_CLASS_STEPS, ORIENTATION_BINS, THRESHOLD_MODES
+from emdflow.params import GRADIENT_CLASS_STEPS, ORIENTATION_BINS, THRESHOLD_MODES, EngineParams
 from emdflow.params import MODELS as _MODELS
 from emdflow.tools import ToolError, frame_size_problem, interp_weights, output_problem, texture_names_problem
 
@@ -1193,6 +1193,11 @@ def main(argv=None):
         for path in a.data:
             if problem := stored_flights_problem(path):
                 ap.error(f"data {path}: {problem}")
+    if a.cmd in ("collect", "evaluate"):
+        try:  # (EngineParams' own range, named by the option: a ValueError traceback before)
+            EngineParams(evidence_row_step=a.evidence_row_step)
+        except ValueError as exc:
+            ap.error(f"--evidence-row-step {a.evidence_row_step}: {exc}")
     if a.cmd == "collect":
         textures = tuple(a.textures.split(","))
         bad = set(textures) & set(EVALUATION_TEXTURES)
@@ -1232,6 +1237,8 @@ def main(argv=None):
             margins = [float(x) for x in a.margins.split(",")]
         except ValueError:
             ap.error(f"--margins {a.margins!r}: expected comma-separated numbers")
+        if not all(map(math.isfinite, margins)):
+            ap.error(f"--margins {a.margins!r}: expected finite numbers")
         margin_sweep(a.data, margins)
     else:
         from emdflow.summary import SummaryOptions
@@ -1254,6 +1261,13 @@ def main(argv=None):
                 ap.error(f"--save {a.save}: {problem}")
         if a.frames < 1:
             ap.error(f"--frames {a.frames}: must be at least 1")
+        # (nan or inf flew a traceback; a negative contrast or a drift to -500 % garbage)
+        if not math.isfinite(a.offset):
+            ap.error(f"--offset {a.offset:g}: must be a finite number (radians)")
+        if not (math.isfinite(a.contrast) and a.contrast > 0):
+            ap.error(f"--contrast {a.contrast:g}: must be a finite number > 0 (contrast factor)")
+        if not (math.isfinite(a.drift) and a.drift > -1.0):
+            ap.error(f"--drift {a.drift:g}: must be a finite number > -1 (relative exposure change)")
         try:
             _checked_noise(a.noise, a.noise, f"--noise {a.noise:g}")
         except ValueError as exc:
