@@ -143,6 +143,7 @@ def test_calibrate_summary_refuses_bad_options(cs, tmp_path, capsys, argv, optio
     (b"hist,flow\n1,2\n", "not a NumPy .npz archive"),
     ("one array", "one NumPy array, not an .npz archive"),
     ("no flow", "no 'stats' or 'flow' array in it"),
+    ("no frames", "no frames in it"),  # (an IndexError at the first frame before)
 ])
 @pytest.mark.parametrize("command", ["fit", "misfit", "margin", "evaluate"])
 def test_calibrate_summary_names_a_file_that_holds_no_flights(cs, tmp_path, capsys, command, content, problem):
@@ -154,10 +155,24 @@ def test_calibrate_summary_names_a_file_that_holds_no_flights(cs, tmp_path, caps
             np.save(f, np.zeros(3))
     elif content == "no flow":
         np.savez(path, hist=np.zeros((1, 2, 2, 64)))
+    elif content == "no frames":
+        np.savez(path, hist=np.zeros((0, 2, 2, 64)), stats=np.zeros((0, 9)), flow=np.zeros((0, 2)),
+                 shape=np.array([72, 96]), frame_index=np.array(20))
     else:
         path.write_bytes(content)
     argv = [command, "--data", str(path)] if command == "evaluate" else [command, str(path)]
     _refused(cs.main, argv, capsys, f"{path}: {problem}")
+
+
+@pytest.mark.parametrize("command", ["margin", "evaluate"])
+def test_calibrate_summary_names_collected_flights_it_cannot_summarise_again(cs, tmp_path, capsys, command):
+    """collect --out stores no frame size: evaluate --data and margin, which summarise the
+    frames again, say so (a KeyError traceback before); fit takes such a file."""
+    path = tmp_path / "collected.npz"
+    np.savez(path, hist=np.zeros((3, 2, 2, 64)), stats=np.zeros((3, 9)), flow=np.ones((3, 2)))
+    argv = [command, "--data", str(path)] if command == "evaluate" else [command, str(path)]
+    err = _refused(cs.main, argv, capsys, f"{path}: no 'shape' or 'frame_index' array in it")
+    assert "only evaluate --save stores what summarising again needs" in err
 
 
 @pytest.mark.parametrize("argv, option", [

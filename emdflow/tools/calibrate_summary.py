@@ -239,9 +239,15 @@ def _stored_shape(path, name: str) -> tuple[int, ...]:
 STORED_ARRAYS = ("hist", "stats", "flow")
 
 
-def stored_flights_problem(path) -> str | None:
+#: What summarising stored flights needs besides STORED_ARRAYS (``evaluate --save`` writes
+#: them; ``collect --out`` does not): the frame size and the frames' index.
+SCORED_ARRAYS = ("shape", "frame_index")
+
+
+def stored_flights_problem(path, scored: bool = False) -> str | None:
     """Why ``path`` is not a file of stored flights, or None (reads the archive's directory
-    only, not its arrays)."""
+    and the length of its flows). ``scored``: the flights are to be summarised again
+    (``evaluate --data``, ``margin``), which needs :data:`SCORED_ARRAYS` too."""
     import zipfile
 
     if not Path(path).is_file():
@@ -254,9 +260,17 @@ def stored_flights_problem(path) -> str | None:
         return "one NumPy array, not an .npz archive of stored flights"
     with stored:
         missing = [name for name in STORED_ARRAYS if name not in stored.files]
-    if missing:
-        return (f"no {' or '.join(repr(m) for m in missing)} array in it "
-                "(not written by collect --out or evaluate --save)")
+        if missing:
+            return (f"no {' or '.join(repr(m) for m in missing)} array in it "
+                    "(not written by collect --out or evaluate --save)")
+        if scored and (missing := [name for name in SCORED_ARRAYS if name not in stored.files]):
+            return (f"no {' or '.join(repr(m) for m in missing)} array in it (written by collect --out: "
+                    "only evaluate --save stores what summarising again needs)")
+        try:
+            if len(stored["flow"]) == 0:
+                return "no frames in it"
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # (a corrupt member)
+            return f"its 'flow' array cannot be read ({exc})"
     return None
 
 
@@ -1037,7 +1051,7 @@ def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: 
         Code 2 when the file ``data`` does not exist or holds no stored flights.
     """
     if data:
-        if problem := stored_flights_problem(data):
+        if problem := stored_flights_problem(data, scored=True):
             raise ToolError(f"--data {data}: {problem}", 2)
         with np.load(data) as z:
             flights = {k: z[k] for k in z.files}
@@ -1191,7 +1205,7 @@ def main(argv=None):
     # an error after all of them)
     if a.cmd in ("fit", "misfit", "margin"):
         for path in a.data:
-            if problem := stored_flights_problem(path):
+            if problem := stored_flights_problem(path, scored=a.cmd == "margin"):
                 ap.error(f"data {path}: {problem}")
     if a.cmd in ("collect", "evaluate"):
         try:  # (EngineParams' own range, named by the option: a ValueError traceback before)
