@@ -45,6 +45,8 @@ ZOOM = ["--models", "paper", "--textures", "gravel", "--translations", "0,0", "-
     (["--flights", "0"], "--flights"),
     (["--flights", "-1"], "--flights"),
     (["--frames", "0"], "--frames"),
+    # a receding flight whose last frame cannot be rendered (a traceback mid-run before)
+    (["--rates=-0.5", "--frames", "8"], "--rates -0.5 over gravel (8 frames): frame 10:"),
 ])
 def test_zoom_eval_refuses_bad_options(monkeypatch, capsys, extra, option):
     from emdflow.tools import zoom_eval

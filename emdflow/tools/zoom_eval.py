@@ -450,6 +450,19 @@ def main(argv=None) -> int:
                  "> -1 and not 0 (scale growth per frame)")
     if not all(math.isfinite(c) for uv in a.translations for c in uv):
         ap.error("--translations: u,v must be finite numbers (px/frame)")
+    # a receding flight's last frame must still be renderable (a rate of -0.5 failed at frame
+    # 9 of the default flights, a traceback mid-run): its frame, rendered once per ground
+    from emdflow.params import EngineParams
+    from emdflow.synthetic import CameraFlight
+
+    last = max(EngineParams(**MODELS[m]).history_frames for m in models) + a.frames - 1
+    for texture in textures:
+        for rate in sorted(set(a.rates)):
+            try:
+                CameraFlight(texture_source(texture), width=320, height=240, expansion_rate=rate,
+                             supersample=2).render(last)
+            except ValueError as exc:
+                ap.error(f"--rates {rate:g} over {texture} ({a.frames} frames): {exc}")
     results = evaluate(models=models, textures=textures, rates=a.rates,
                        translations=a.translations, frames=a.frames,
                        flights=6 if a.flights is None else a.flights, backend=a.backend,
