@@ -81,7 +81,8 @@ class LoomingCues:
     time_to_contact_frames : float
         ``1 / expansion_rate`` when approaching, ``inf`` otherwise.
     balance_lr, balance_tb : float
-        Image-speed balance right vs left and bottom vs top, −1..1 (0 = balanced).
+        Image-speed balance right vs left and bottom vs top, −1..1 (0 = balanced); NaN for
+        an axis without enough detections of its own when the other axis has them.
     detections : int
         Detections the cues were computed from (0 = no cue: all values 0 / inf).
     """
@@ -451,7 +452,8 @@ def looming_cues(field: FlowField, *, min_detections: int = 50) -> LoomingCues:
         rate = _slope_rate(pos, counts, signed, field.shape, axes)
         if not (math.isfinite(rate) and abs(rate) <= _MAX_RATE):
             return LoomingCues()  # (the calibrated fit's limit holds for the line fit too)
-    balance = np.where(usable, _balance(pos, counts, signed), 0.0)
+    # (an axis without enough detections has no balance: NaN, not 0, which reads "balanced")
+    balance = np.where(usable, _balance(pos, counts, signed), math.nan)
     return LoomingCues(
         expansion_rate=rate,
         time_to_contact_frames=1.0 / rate if rate > 1e-6 else math.inf,

@@ -560,6 +560,8 @@ class Daemon:
         self._interval_latencies: list[int] = []             # since the last status line
         self._latency_lock = threading.Lock()
         self.exit_code = 0
+        #: compute the looming cues per frame, for the link's extra values (set with the link)
+        self._send_cues = False
         self.running = threading.Event()
         self._prev: Frame | None = None
         #: the steps between the processed frames the detector's output spans now (index
@@ -734,6 +736,12 @@ class Daemon:
                 # The link's keep-alive starts then, but never later than the link's own value
                 # (MSP: 0.15 s, INAV times out after 0.2 s).
                 self.link.blind_after_s = min(self.link.blind_after_s, self.config.daemon.blind_after_s)
+            self._send_cues = self.config.link.extra_values
+            if self._send_cues and getattr(self.link, "protocol", "mavlink") != "mavlink":
+                # (MSP has no message for them: computed every frame, ~0.4 ms, and dropped)
+                log.warning("[link] extra_values = true: %s has no message for the looming cues; not "
+                            "computed or sent (MAVLink sends them as NAMED_VALUE_FLOAT)", self.link.protocol)
+                self._send_cues = False
             # a paced recording or flight fed to the numpy reference is a camera the engine
             # cannot keep up with: it needs the capture side's evenly spaced subset too
             paced_slow = self.config.source.realtime and self.config.engine.backend == "numpy"
@@ -898,7 +906,7 @@ class Daemon:
         summary = _summarize(field)
         # the looming cues go out per frame only as extra values; the status line
         # computes them from the last field when it is due
-        cues = looming_cues(field) if self.config.link.extra_values else None
+        cues = looming_cues(field) if self._send_cues else None
         t2 = host_us()
         extras = ()
         if cues is not None and not cues.detections:

@@ -192,6 +192,30 @@ def test_an_evidence_row_step_that_starves_the_summary_is_named_at_start(tmp_pat
     assert any(m.quality for m in msgs if m.get_type() == "OPTICAL_FLOW")
 
 
+def test_extra_values_over_msp_are_named_and_not_computed(tmp_path, caplog, monkeypatch):
+    """MSP has no message for the looming cues: [link] extra_values with INAV said nothing
+    and computed them every frame (~0.4 ms) to drop them."""
+    import firmware_py.daemon as daemon_module
+
+    caplog.set_level(logging.INFO, logger="emdflowd")
+    calls = []
+    monkeypatch.setattr(daemon_module, "looming_cues", lambda field: calls.append(field))
+
+    def factory():
+        return make_source("synthetic:u=2,v=1", width=96, height=72, fps=100)
+
+    config = Config()
+    for section, key, value in (("source", "uri", "synthetic:u=2,v=1"), ("source", "width", 96),
+                                ("source", "height", 72), ("engine", "backend", engine_backend()),
+                                ("daemon", "threading", "single"), ("link", "autopilot", "inav"),
+                                ("link", "extra_values", True), ("daemon", "log_interval_s", 60.0)):
+        config.set(section, key, value)
+    code, daemon, data = run_daemon(config, frames=20, source_factory=factory)
+    assert code == 0 and daemon.stats.processed == 20
+    assert "[link] extra_values = true: msp has no message for the looming cues; not computed or sent" in caplog.text
+    assert len(calls) <= 1  # (the status line's, from the last field: not one per frame)
+
+
 @pytest.mark.parametrize("call", ["read", "close", "open"])
 def test_a_hung_driver_call_ends_the_daemon_for_systemd_to_restart(tmp_path, caplog, monkeypatch, call):
     """A camera whose read, or whose close after a failed read, or whose reopen never

@@ -177,6 +177,19 @@ def test_balance_points_to_the_faster_half():
     assert float(np.median([c.balance_lr for c in cues])) > 0.2
 
 
+def test_an_axis_without_evidence_has_no_balance():
+    """Vertical stripes sliding sideways give the horizontal detectors all the evidence and
+    the vertical ones none: the top/bottom balance is unknown (NaN), not 0.0, which reads
+    "balanced" (and went out as such over MAVLink)."""
+    rng = np.random.default_rng(3)
+    columns = (rng.random(W + 40) * 255).astype(np.uint8)
+    frames = [np.ascontiguousarray(np.tile(columns[2 * t:2 * t + W], (H, 1))) for t in range(10)]
+    est = emdflow.FlowEstimator(W, H)
+    found = [c for c in (looming_cues(est.update(f)) for f in frames) if c.detections]
+    assert found
+    assert all(math.isnan(c.balance_tb) and math.isfinite(c.balance_lr) for c in found), found
+
+
 def test_zoom_eval_tool_reports_every_cell(tmp_path):
     from emdflow.tools import zoom_eval
 

@@ -342,8 +342,10 @@ def test_latencies_are_reported_once(peer):
         link.close()
 
 
-def test_extra_values_go_out_as_named_value_float_only_when_enabled():
-    """Issue #6 cues (expansion, time to contact, balance) ride on NAMED_VALUE_FLOAT."""
+def test_extra_values_go_out_as_named_value_float_only_when_enabled(tmp_path):
+    """Issue #6 cues (expansion, time to contact, balance) ride on NAMED_VALUE_FLOAT, and
+    the CSV message log has their name, value and sequence number (blank rows before)."""
+    import csv
     import os
 
     from pymavlink.dialects.v20 import common as mavlink2
@@ -353,8 +355,9 @@ def test_extra_values_go_out_as_named_value_float_only_when_enabled():
     for enabled in (False, True):
         master, slave = os.openpty()
         os.set_blocking(master, False)
+        log_path = tmp_path / f"sent_{enabled}.csv"
         link = open_link(LinkConfig(port=os.ttyname(slave), baud=921600, autopilot="ardupilot",
-                                    focal_length_px=300.0, extra_values=enabled))
+                                    focal_length_px=300.0, extra_values=enabled, message_log=str(log_path)))
         try:
             for i in range(50):  # 0.5 s of frames at 100 fps
                 link.submit(FlowSample(timestamp_us=i * 10_000, capture_host_us=i * 10_000,
@@ -388,3 +391,8 @@ def test_extra_values_go_out_as_named_value_float_only_when_enabled():
             assert abs(values["expansion"] - 0.02) < 1e-6 and abs(values["ttc_s"] - 0.5) < 1e-6
             # 5 Hz over 0.5 s of capture time, two names: 2-3 reports each
             assert 4 <= len(msgs) <= 6
+            with open(log_path, newline="") as f:
+                rows = [r for r in csv.DictReader(f) if r["message"] == "NAMED_VALUE_FLOAT"]
+            assert [r["name"] for r in rows] == [m.name for m in msgs]
+            assert [float(r["value"]) for r in rows] == pytest.approx([m.value for m in msgs], rel=1e-6)  # (float32)
+            assert [int(r["seq"]) for r in rows] == [m.get_seq() for m in msgs]

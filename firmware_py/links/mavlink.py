@@ -259,8 +259,10 @@ class MavlinkLink(FlowLink):
         for name, value in sample.extras:
             msg = self.encoder.named_value_float_encode(
                 time_boot_ms=(ts // 1000) & 0xFFFFFFFF, name=str(name)[:10].encode(), value=float(value))
-            self._enqueue_other("NAMED_VALUE_FLOAT", pack(self.encoder, msg),
-                                {"name": str(name)[:10], "value": float(value)}, now)
+            data = pack(self.encoder, msg)
+            # (name and value have their own log columns: the rows were blank before)
+            self._enqueue_other("NAMED_VALUE_FLOAT", data,
+                                {"seq": data[4], "name": str(name)[:10], "value": float(value)}, now)
 
     def _send_heartbeat(self, now: int, *, first: bool = False) -> None:
         data = encode_heartbeat(self.encoder)
