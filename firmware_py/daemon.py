@@ -1025,9 +1025,9 @@ class Daemon:
         if c is not None and c.detections:
             frame_s = self._frame_interval_s()
             ttc = c.time_to_contact_frames * frame_s
+            lr, tb = (f"{b:+.2f}" if math.isfinite(b) else "-" for b in (c.balance_lr, c.balance_tb))
             flow += (f" | expansion {c.expansion_rate / frame_s:+.3f}/s ttc "
-                     f"{'-' if not math.isfinite(ttc) else f'{ttc:.1f} s'} balance L/R {c.balance_lr:+.2f} "
-                     f"T/B {c.balance_tb:+.2f}")
+                     f"{'-' if not math.isfinite(ttc) else f'{ttc:.1f} s'} balance L/R {lr} T/B {tb}")
         if iv is None:
             t = self.stats.totals()
             return (f"total: in {t['frames_in']} processed {t['processed']} skipped {t['skipped']} "

@@ -257,6 +257,28 @@ def test_message_log_survives_a_daemon_restart(tmp_path, suffix):
     assert sent.count("HEARTBEAT") >= 2 and sent.count("OPTICAL_FLOW_RAD") >= 2 * 10
 
 
+def test_a_csv_log_of_other_columns_is_set_aside(tmp_path, caplog):
+    """A log written by a version with fewer columns (the extra values' name and value came
+    later) is renamed to .old rather than appended to under a header its rows do not match;
+    a log with this version's header is appended to."""
+    from firmware_py.links.message_log import LOG_COLUMNS, MessageLog
+
+    path = tmp_path / "sent.csv"
+    old_text = ",".join(LOG_COLUMNS[:-2]) + "\n1,HEARTBEAT,21\n"
+    path.write_text(old_text)
+    with caplog.at_level(logging.WARNING):
+        log = MessageLog(str(path))
+    log.write(host_us=2, message="HEARTBEAT", size=21, latency_us=None, fields={})
+    log.close()
+    assert (tmp_path / "sent.csv.old").read_text() == old_text
+    assert path.read_text().splitlines() == [",".join(LOG_COLUMNS), "2,HEARTBEAT,21" + "," * (len(LOG_COLUMNS) - 3)]
+    assert "its columns are another version's; moved to" in caplog.text
+    log = MessageLog(str(path))  # (this version's header: appended to, nothing moved)
+    log.write(host_us=3, message="HEARTBEAT", size=21, latency_us=None, fields={})
+    log.close()
+    assert len(path.read_text().splitlines()) == 3 and (tmp_path / "sent.csv.old").read_text() == old_text
+
+
 def test_message_log_reopens_after_a_rotation_and_after_being_disabled(tmp_path):
     """SIGHUP's reopen(): rows after it go to a new file at the path (with its own header),
     and a log a write error closed starts again."""

@@ -146,6 +146,7 @@ def test_calibrate_summary_refuses_bad_options(cs, tmp_path, capsys, argv, optio
     ("one array", "one NumPy array, not an .npz archive"),
     ("no flow", "no 'stats' or 'flow' array in it"),
     ("no frames", "no frames in it"),  # (an IndexError at the first frame before)
+    ("0-d flow", "no frames in it"),
 ])
 @pytest.mark.parametrize("command", ["fit", "misfit", "margin", "evaluate"])
 def test_calibrate_summary_names_a_file_that_holds_no_flights(cs, tmp_path, capsys, command, content, problem):
@@ -157,6 +158,9 @@ def test_calibrate_summary_names_a_file_that_holds_no_flights(cs, tmp_path, caps
             np.save(f, np.zeros(3))
     elif content == "no flow":
         np.savez(path, hist=np.zeros((1, 2, 2, 64)))
+    elif content == "0-d flow":
+        np.savez(path, hist=np.zeros((1, 2, 2, 64)), stats=np.zeros((1, 9)), flow=np.array(1.0),
+                 shape=np.array([72, 96]), frame_index=np.array(20))
     elif content == "no frames":
         np.savez(path, hist=np.zeros((0, 2, 2, 64)), stats=np.zeros((0, 9)), flow=np.zeros((0, 2)),
                  shape=np.array([72, 96]), frame_index=np.array(20))

@@ -249,6 +249,7 @@ def stored_flights_problem(path, scored: bool = False) -> str | None:
     and the length of its flows). ``scored``: the flights are to be summarised again
     (``evaluate --data``, ``margin``), which needs :data:`SCORED_ARRAYS` too."""
     import zipfile
+    import zlib
 
     if not Path(path).is_file():
         return "no such file"
@@ -267,9 +268,9 @@ def stored_flights_problem(path, scored: bool = False) -> str | None:
             return (f"no {' or '.join(repr(m) for m in missing)} array in it (written by collect --out: "
                     "only evaluate --save stores what summarising again needs)")
         try:
-            if len(stored["flow"]) == 0:
-                return "no frames in it"
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # (a corrupt member)
+            if np.ndim(stored["flow"]) != 2 or len(stored["flow"]) == 0:
+                return "no frames in it (its 'flow' array holds no (u, v) rows)"
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:  # (a corrupt member)
             return f"its 'flow' array cannot be read ({exc})"
     return None
 

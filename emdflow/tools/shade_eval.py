@@ -69,11 +69,11 @@ def evaluate(*, model: str = "extended", modes=DEFAULT_MODES, speeds=DEFAULT_SPE
                     seen = np.isfinite(field.u) | np.isfinite(field.v)
                     lit.append(seen[:, : width // 2].mean())
                     shaded.append(seen[:, width // 2 :].mean())
-                    balance.append(looming_cues(field).balance_lr)
+                    balance.append(looming_cues(field).balance_lr)  # (NaN: no horizontal evidence)
                     s = emdflow.summarize(field)
                     errors.append(math.hypot(s.flow_x - flow[0], s.flow_y - flow[1]) / speed if s.quality else 1.0)
             rows.append({"mode": mode, "speed": speed, "density_lit": float(np.mean(lit)),
-                         "density_shaded": float(np.mean(shaded)), "balance_lr": float(np.mean(balance)),
+                         "density_shaded": float(np.mean(shaded)), "balance_lr": float(np.nanmean(balance)),
                          "summary_error": float(np.median(errors))})
     return rows
 

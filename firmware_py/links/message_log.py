@@ -54,6 +54,8 @@ class MessageLog:
         parent = os.path.dirname(self.path)
         if parent:
             os.makedirs(parent, exist_ok=True)
+        if self.is_csv:
+            self._set_aside_other_columns()
         self._file = open(self.path, "a", newline="" if self.is_csv else None, encoding="utf-8")
         self._writer = None
         if self._file.tell() > 0:
@@ -63,6 +65,21 @@ class MessageLog:
             if self._file.tell() == 0:
                 self._writer.writeheader()
         self._last_flush_us = None
+
+    def _set_aside_other_columns(self) -> None:
+        """A CSV log whose header is not :data:`LOG_COLUMNS` (written by an earlier version,
+        whose columns were fewer) is renamed to ``<path>.old`` with a warning: rows appended
+        under it would not match its header."""
+        try:
+            with open(self.path, encoding="utf-8", errors="replace") as f:
+                header = f.readline().rstrip("\r\n")
+        except OSError:
+            return  # (no file yet, or unreadable: opening it says so)
+        if header and header != ",".join(LOG_COLUMNS):
+            old = self.path + ".old"
+            os.replace(self.path, old)
+            log.warning("message log %s: its columns are another version's; moved to %s, a new log starts",
+                        self.path, old)
 
     def _end_torn_line(self) -> None:
         """Terminate a last row cut off by a power loss, so the next row starts on its own line."""
