@@ -1244,10 +1244,10 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
     counts = field.histogram
     if counts.dtype.kind == "f" and not np.isfinite(counts).all():
         raise ValueError("summarize(): the field's histogram holds a NaN or infinite count")
-    if counts.dtype.kind in "if" and counts.size and counts.min() < 0:
+    if counts.dtype.kind in "if" and counts.size and (least := counts.min()) < 0:
         # (a negative count made the fit's deviance NaN, which read as a perfect fit)
-        raise ValueError(f"summarize(): the field's histogram holds a negative count ({counts.min()})")
-    shape = np.shape(field.histogram)
+        raise ValueError(f"summarize(): the field's histogram holds a negative count ({least})")
+    shape = counts.shape
     if len(shape) == 3 and shape[0] != field.params.evidence_axes:
         raise ValueError(f"summarize(): the field's histogram has {shape[0]} detector axes, "
                          f"its parameters ({'with' if field.params.diagonal_evidence else 'without'} "

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from emdflow.params import MODELS, THRESHOLD_MODES
 
-from .links.base import AUTOPILOT_PROTOCOLS, MIN_MESSAGE_RATE_HZ, MIN_RATE_REASON, MSP_ARDUPILOT
+from .links.base import AUTOPILOT_PROTOCOLS, MIN_MESSAGE_RATE_HZ, MIN_RATE_REASON, protocol_refusal
 
 __all__ = ["Config", "SourceConfig", "OpticsConfig", "EngineConfig", "LinkConfigSection",
            "DaemonConfig", "ConfigError", "load_config", "SECTIONS", "ARDUPILOT_MIN_QUALITY"]
@@ -217,9 +217,8 @@ class Config:
         if protocol is not None and speaks and protocol not in speaks:
             raise ConfigError(
                 f"{where}: [link] autopilot = {autopilot!r} with protocol = {protocol!r} (--autopilot / "
-                f"--protocol): {_AUTOPILOT_NAMES[autopilot]} takes optical flow over "
-                f"{' or '.join(speaks)} only; leave protocol out or set it to {speaks[0]!r}"
-                + (f" ({MSP_ARDUPILOT})" if autopilot == "ardupilot" else ""))
+                f"--protocol): " + protocol_refusal(autopilot, _AUTOPILOT_NAMES[autopilot],
+                                                    f"; leave protocol out or set it to {speaks[0]!r}"))
 
     def cautions(self) -> list[str]:
         """Settings that are valid but risky for the configured autopilot (logged as

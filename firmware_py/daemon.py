@@ -415,8 +415,7 @@ class SourceKeeper:
                     # what was flown (and, failing at the same place, forever)
                     log.error("%s: a recording is not reopened (it would start again at its first "
                               "frame): stopping", what)
-                    self.ended = self.failed = True
-                    self.close()
+                    self._end_recording(failed=True)
                     return None
                 self._fail(what)
                 return None
@@ -424,8 +423,7 @@ class SourceKeeper:
                 if not source.live:  # a recording ends; a camera's stream ending is a loss
                     log.info("source %s: end of stream: stopping (a file replays with [source] loop "
                              "= true)", source.uri)
-                    self.ended = True
-                    self.close()
+                    self._end_recording(failed=False)
                     return None
                 self._fail(f"source {source.uri}: end of stream")
                 return None
@@ -443,6 +441,12 @@ class SourceKeeper:
                 elif now - self._first_frame_at >= self.steady_s:
                     self._delay = self.backoff_s  # delivering steadily: a new failure starts afresh
             return frame
+
+    def _end_recording(self, *, failed: bool) -> None:
+        """Nothing more to read from a recording (:attr:`ended`, :attr:`failed`): it is not
+        reopened."""
+        self.ended, self.failed = True, failed
+        self.close()
 
     def close(self) -> None:
         if self.source is not None:

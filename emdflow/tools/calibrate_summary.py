@@ -268,7 +268,8 @@ def stored_flights_problem(path, scored: bool = False) -> str | None:
             return (f"no {' or '.join(repr(m) for m in missing)} array in it (written by collect --out: "
                     "only evaluate --save stores what summarising again needs)")
         try:
-            if np.ndim(stored["flow"]) != 2 or len(stored["flow"]) == 0:
+            flow = stored["flow"]  # (each access reads the member again)
+            if flow.ndim != 2 or len(flow) == 0:
                 return "no frames in it (its 'flow' array holds no (u, v) rows)"
         except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:  # (a corrupt member)
             return f"its 'flow' array cannot be read ({exc})"

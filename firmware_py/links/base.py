@@ -243,10 +243,11 @@ class LinkConfig:
             raise ValueError(f"msp_counts_per_degree must be positive, got {self.msp_counts_per_degree}")
 
 
-def protocol_refusal(autopilot: str) -> str:
-    """Why ``autopilot`` takes no other protocol than :data:`AUTOPILOT_PROTOCOLS` lists."""
+def protocol_refusal(autopilot: str, name: str | None = None, advice: str = "") -> str:
+    """Why ``autopilot`` (shown as ``name``) takes no other protocol than
+    :data:`AUTOPILOT_PROTOCOLS` lists, ``advice`` after the rule."""
     speaks = AUTOPILOT_PROTOCOLS[autopilot]
-    text = f"{autopilot} takes optical flow over {' or '.join(speaks)} only"
+    text = f"{name or autopilot} takes optical flow over {' or '.join(speaks)} only{advice}"
     return f"{text}: {MSP_ARDUPILOT}" if autopilot == "ardupilot" else text
 
 
