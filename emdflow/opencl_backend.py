@@ -22,6 +22,9 @@ import os
 import struct
 import threading
 import weakref
+from bisect import bisect_right
+from fractions import Fraction
+from functools import lru_cache
 from importlib import resources
 from pathlib import Path
 
@@ -30,7 +33,8 @@ import numpy as np
 from .params import ORIENTATION_BINS, EngineParams, _is_whole
 from .reference import POSITION_BINS, STAT_CONTRAST, STAT_FIRST_CHANGED
 
-__all__ = ["OpenCLEngine", "PackedCodes", "KernelBuildError", "list_devices", "kernel_source"]
+__all__ = ["OpenCLEngine", "PackedCodes", "KernelBuildError", "list_devices", "kernel_source", "program_source",
+           "orientation_cells"]
 
 log = logging.getLogger(__name__)
 
@@ -211,6 +215,38 @@ def _shared_buffer(cl, ctx, queue, device, size: int, host_writes: bool):
     return buf, host
 
 
+#: cells of the orientation lookup per quarter turn (evidence.cl: orientation_bin)
+ORIENT_CELLS = 1024
+
+
+@lru_cache(maxsize=None)
+def orientation_cells() -> tuple[int, ...]:
+    """The detector kernel's orientation lookup (``evidence.cl``, ``orientation_bin``).
+
+    A gradient folded into the upper half-plane has the pseudo-angle
+    ``p = gy / (|gx| + gy)`` for ``gx >= 0`` and ``2 - gy / (|gx| + gy)`` for ``gx < 0``,
+    which grows with its angle over [0°, 180°). The kernel's cell is
+    ``floor(ORIENT_CELLS · gy / (|gx| + gy))`` (``2 · ORIENT_CELLS`` minus that for
+    ``gx < 0``), so ``ORIENT_CELLS · p`` lies strictly between ``j - 1`` and ``j + 1`` for the
+    cell index ``j``.
+    Entry ``j`` is the number of boundaries of :meth:`EngineParams.orientation_table`
+    (exact fractions) at or below ``j - 1``: the gradient lies beyond all of them and
+    before every boundary at or above ``j + 1``; at most one lies between (checked here:
+    neighbouring boundaries are at least 2 cells apart), and that one, the entry's own
+    index, the kernel tests exactly. So the bin is exactly the reference's count
+    (:func:`emdflow.reference.orientation_bins`) with one division and one test.
+    """
+    scaled = []
+    for c, s in EngineParams.orientation_table().tolist():
+        if s <= 0:
+            raise ValueError(f"orientation boundary ({c}, {s}) is not in the upper half-plane")
+        p = Fraction(s, c + s) if c >= 0 else 2 - Fraction(s, s - c)
+        scaled.append(ORIENT_CELLS * p)
+    if any(b - a < 2 for a, b in zip(scaled, scaled[1:])):
+        raise ValueError(f"orientation boundaries closer than 2 of {ORIENT_CELLS} cells: the lookup needs more")
+    return tuple(bisect_right(scaled, j - 1) for j in range(2 * ORIENT_CELLS + 1))
+
+
 def _ceil(a: int, b: int) -> int:
     return -(-a // b)
 
@@ -317,6 +353,7 @@ class _Layout:
             "CLASS_STEPS": join(params.class_steps) or "0",
             "ORIENT_C": join(table[:, 0]),
             "ORIENT_S": join(table[:, 1]),
+            "ORIENT_CELLS": ORIENT_CELLS, "ORIENT_CELL_TABLE": join(orientation_cells()),
             "LOCAL_THRESHOLD": self.LOCAL, "TILE": self.TILE, "NTX": self.NTX, "TILE_OFFSET": self.tile_offset,
         }
 
@@ -415,8 +452,10 @@ def _device_with_program(device, layout: _Layout, debug: bool):
     return chosen, ctx, queue, program
 
 
-def _program(ctx, device, layout: _Layout, debug: bool):
-    cl = _import_cl()
+def program_source(device, layout: _Layout, debug: bool = False) -> str:
+    """The OpenCL C the engine builds on ``device`` for ``layout``: its constants, the
+    compiler's extras where the device is PoCL's (unless EMDFLOW_OPENCL_PORTABLE is set)
+    and the kernels of every stage."""
     source = layout.header() + ("#define DEBUG_MATCHES 1\n" if debug else "")
     portable = os.environ.get(PORTABLE_ENV, "").strip() not in ("", "0")
     if not portable and "portable computing language" in device.platform.name.lower():
@@ -425,7 +464,12 @@ def _program(ctx, device, layout: _Layout, debug: bool):
         source += "#define EMD_INLINE_ATOMICS 1\n#define EMD_CLANG_BUILTINS 1\n"
         if device.type & _import_cl().device_type.CPU:
             source += "#define EMD_X86_BUILTINS 1\n"
-    source += "\n".join(kernel_source(name) for name in _STAGES)
+    return source + "\n".join(kernel_source(name) for name in _STAGES)
+
+
+def _program(ctx, device, layout: _Layout, debug: bool):
+    cl = _import_cl()
+    source = program_source(device, layout, debug)
     key = (device.int_ptr, source)
     with _LOCK:
         prog = _PROGRAMS.get(key)

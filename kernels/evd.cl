@@ -21,9 +21,6 @@
  * diagonals (B = A + k (1, 1) and A + k (1, -1)) and bin their fused detections on that
  * row as histogram axes 2 and 3: they feed the summary only, not the output planes. */
 
-/* the 8 words of a run, as a vector or one by one */
-typedef union { uint8 v; uint w[8]; } run_words;
-
 /* bits of pixels x0 + j + s, j = 0..31, for 0 < |s| < 32, for 8 words at once */
 inline uint8 along(__global const uint *p, int s)
 {
@@ -132,21 +129,12 @@ __kernel void velocity_detectors(__global const uint *planes, __global char *res
         const uint count = lane_popcount(any);
         if (count) ATOMIC_ADD(counters + (axis ? STAT_V : STAT_U), (int)count);
         if (count && evidence) {
-            /* the summary's evidence (evidence.cl), from the planes just stored (in L1).
+            /* the summary's evidence (evidence.cl), straight from the fused planes.
              * Copies of the histograms, one per work-group index modulo their count: the
              * CPU threads then rarely increment the same cache line (the host adds them up) */
-            __global int *hist = stats + STAT_HIST + (get_group_id(0) % HIST_COPIES) * HIST_SIZE;
-            __global int *positions = stats + STAT_POS + (get_group_id(0) % POS_COPIES) * POS_SIZE;
-            bin_run pos_run = { -1, 0 }, hist_run = { -1, 0 };
-            for (int w = 0; w < 8; w++) {
-                const int y = (f + w) / NWP, i = f + w - y * NWP - 1;
-                if (y % EVIDENCE_ROW_STEP == 0 && y < H && i >= 0)
-                    bin_detections(positions, hist, sat, P, bright, t, THETA_AT(theta_q, theta_tiles, y, i),
-                                   axis, y, i, o[w], o[w + OUT_PLANE], o[w + 2 * OUT_PLANE],
-                                   o[w + 3 * OUT_PLANE], o[w + 4 * OUT_PLANE], &pos_run, &hist_run);
-            }
-            run_flush(positions, &pos_run);
-            run_flush(hist, &hist_run);
+            bin_evidence(stats + STAT_POS + (get_group_id(0) % POS_COPIES) * POS_SIZE,
+                         stats + STAT_HIST + (get_group_id(0) % HIST_COPIES) * HIST_SIZE, sat, P, bright, t,
+                         theta_q, theta_tiles, axis, f, idx0, idx1, idx2, idx3, sign);
         }
     }
 #if DIAGONAL
@@ -160,19 +148,8 @@ __kernel void velocity_detectors(__global const uint *planes, __global char *res
             const uint8 mp = matches(planes, c, t, f, 1, uy), mn = matches(planes, c, t, f, -1, -uy);
             FUSE_CHANNEL(c, mp, mn);
         }
-        if (!lane_popcount(idx0 | idx1 | idx2 | idx3)) continue;
-        /* the words of the run, one by one (vector lanes cannot be indexed by a variable;
-         * a union can, and vstore8 is a library call on PoCL) */
-        const run_words b0 = { idx0 }, b1 = { idx1 }, b2 = { idx2 }, b3 = { idx3 }, bs = { sign };
-        __global int *hist = stats + STAT_HIST + (get_group_id(0) % HIST_COPIES) * HIST_SIZE;
-        bin_run pos_run = { -1, 0 }, hist_run = { -1, 0 };
-        for (int w = 0; w < 8; w++) {
-            const int y = (f + w) / NWP, i = f + w - y * NWP - 1;
-            if (y % EVIDENCE_ROW_STEP == 0 && y < H && i >= 0)
-                bin_detections(0, hist, sat, P, bright, t, THETA_AT(theta_q, theta_tiles, y, i), axis, y, i,
-                               b0.w[w], b1.w[w], b2.w[w], b3.w[w], bs.w[w], &pos_run, &hist_run);
-        }
-        run_flush(hist, &hist_run);
+        bin_evidence(0, stats + STAT_HIST + (get_group_id(0) % HIST_COPIES) * HIST_SIZE, sat, P, bright, t,
+                     theta_q, theta_tiles, axis, f, idx0, idx1, idx2, idx3, sign);
     }
 #endif
 }

@@ -76,6 +76,77 @@ def test_portable_kernels_are_exact_too(monkeypatch, params):
     assert _compare(width, height, frames, params) > 0
 
 
+_ORIENTATION_TEST_KERNEL = """
+__kernel void orientation_test(__global const int *g, __global int *bins)
+{
+    const int i = get_global_id(0);
+    bins[i] = orientation_bin(g[2 * i], g[2 * i + 1]);
+}
+"""
+
+
+def _orientation_test_gradients():
+    """Every gradient up to 40 per component; each boundary direction at 1-3 times its
+    table length (exactly on the boundary, where the bin's test is ">= 0", and one unit off
+    each way), in both half-planes; the largest components (box sums below 2^16); and
+    random ones."""
+    g = np.mgrid[-40:41, -40:41].reshape(2, -1).T
+    table = EngineParams.orientation_table()
+    near = [m * table + d for m in (1, 2, 3) for d in ((0, 0), (1, 0), (-1, 0), (0, 1), (0, -1))]
+    big = np.array([[65535, 0], [-65535, 0], [0, 65535], [0, -65535], [65535, 65535], [-65535, 65535],
+                    [65535, -1], [-65535, 1], [1, 65535], [-1, 65535], [65535, 1], [-65535, -1]])
+    rng = np.random.default_rng(5)
+    g = np.concatenate([g, *near, *(-n for n in near), big, rng.integers(-65535, 65536, (20000, 2))])
+    return g[np.any(g != 0, axis=1)].astype(np.int32)  # (0, 0) is never binned
+
+
+@pytest.mark.parametrize("portable", [False, True])
+def test_orientation_lookup_is_the_reference_count(monkeypatch, portable):
+    """The detector kernel's orientation bin (one division, a cell table and one exact
+    boundary test: evidence.cl) is the reference's count of boundaries for every gradient
+    the tables can give, on and next to every boundary; run as the engine builds it."""
+    cl = pytest.importorskip("pyopencl")
+    from emdflow.reference import orientation_bins
+
+    if portable:
+        monkeypatch.setenv(opencl_backend.PORTABLE_ENV, "1")
+    eng = opencl_backend.OpenCLEngine(64, 48, EngineParams())
+    source = opencl_backend.program_source(eng.device, eng.layout) + _ORIENTATION_TEST_KERNEL
+    assert ("#define EMD_CLANG_BUILTINS" in source) != portable
+    program = cl.Program(eng.ctx, source).build(options=["-cl-std=CL1.2"])
+    g = _orientation_test_gradients()
+    bins = np.empty(len(g), np.int32)
+    mf = cl.mem_flags
+    g_buf = cl.Buffer(eng.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(g))
+    out = cl.Buffer(eng.ctx, mf.WRITE_ONLY, bins.nbytes)
+    program.orientation_test(eng.queue, (len(g),), None, g_buf, out)
+    cl.enqueue_copy(eng.queue, bins, out, is_blocking=True)
+    expected = orientation_bins(g[:, 0], g[:, 1])
+    wrong = np.flatnonzero(bins != expected)
+    assert wrong.size == 0, f"{wrong.size} gradients binned differently, e.g. {g[wrong[:5]].tolist()}: " \
+                            f"{bins[wrong[:5]].tolist()} != {expected[wrong[:5]].tolist()}"
+    assert set(np.unique(expected)) == set(range(64))  # every bin was reached
+
+
+def test_orientation_cells_are_exact_bounds():
+    """The cell table the kernel's lookup reads: each cell's count of boundaries certainly
+    below is monotone, starts at 0 and ends at all 63, and a numpy mirror of the kernel's
+    lookup (the same integer arithmetic) agrees with the reference's count."""
+    from emdflow.reference import orientation_bins
+
+    cells = np.array(opencl_backend.orientation_cells())
+    n = opencl_backend.ORIENT_CELLS
+    assert len(cells) == 2 * n + 1 and cells[0] == 0 and cells[-1] == 63 and np.all(np.diff(cells) >= 0)
+    g = _orientation_test_gradients().astype(np.int64)
+    flip = (g[:, 1] < 0) | ((g[:, 1] == 0) & (g[:, 0] < 0))
+    gx, gy = np.where(flip, -g[:, 0], g[:, 0]), np.where(flip, -g[:, 1], g[:, 1])
+    q = gy * n // (np.abs(gx) + gy)
+    lo = cells[np.where(gx < 0, 2 * n - q, q)]
+    table = np.vstack([EngineParams.orientation_table(), [[0, 0]]])
+    test = table[lo, 0] * gy - table[lo, 1] * gx >= 0
+    assert np.array_equal(lo + ((lo < 63) & test), orientation_bins(g[:, 0], g[:, 1]))
+
+
 @pytest.mark.parametrize("model", ["paper", "extended"])
 def test_portable_kernels_are_standard_opencl_c_1_2(monkeypatch, tmp_path, model):
     """What a GPU or ARM board's own OpenCL compiler gets is OpenCL C 1.2 without compiler
