@@ -302,6 +302,22 @@ def test_eval_from_csv_without_engine_rows_is_an_error(tmp_path, capsys):
     _one_line_error(capsys, f"{dis_only}: no engine rows (only DIS)")
 
 
+def test_eval_from_csv_refuses_flight_options(tmp_path, capsys):
+    """--from-csv flies nothing: a flight or engine option beside it (a different speed
+    list, another model) used to be ignored without a word, and the table printed was the
+    CSV's, not the one asked for."""
+    from emdflow.tools.evaluate import CSV_COLUMNS, write_csv
+
+    saved = tmp_path / "saved.csv"
+    write_csv([{**dict.fromkeys(CSV_COLUMNS, 0.5), "variant": "base", "method": "emd", "speed": 1.0,
+                "frames": 2}], saved)
+    for extra in (["--speeds", "2,3"], ["--model", "extended", "--quick"], ["--seed", "4"],
+                  ["--engine-opt", "threshold=3"], ["--label", "mine"]):
+        assert main(["eval", "--from-csv", str(saved), "--plot", "", *extra]) == 2
+        _one_line_error(capsys, f"--from-csv {saved} flies nothing", *(e for e in extra if e.startswith("--")))
+    assert main(["eval", "--from-csv", str(saved), "--plot", ""]) == 0
+
+
 def test_plots_without_matplotlib(tmp_path, monkeypatch, capsys):
     """Installed with the ``pocl`` extra alone there is no matplotlib: ``emdflow eval``
     leaves its default plot out with a note, an explicit ``--plot`` is an error before

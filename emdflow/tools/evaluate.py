@@ -786,11 +786,28 @@ def _plot_path(args) -> str:
     return args.plot
 
 
+#: options that shape a flight or its engine, with their defaults: ``--from-csv`` flies
+#: nothing, so any of them set beside it is refused rather than silently ignored
+_FLIGHT_OPTIONS = (("textures", "--textures", None), ("speeds", "--speeds", None),
+                   ("directions", "--directions", None), ("variants", "--variants", None),
+                   ("size", "--size", None), ("frames", "--frames", None), ("repeats", "--repeats", None),
+                   ("seed", "--seed", 1), ("quick", "--quick", False), ("no_dis", "--no-dis", False),
+                   ("label", "--label", "emd"), ("backend", "--backend", "opencl"), ("model", "--model", None),
+                   ("device", "--device", None), ("scales", "--scales", None), ("threshold", "--threshold", None),
+                   ("prefilter_size", "--prefilter-size", None), ("delays", "--delays", None),
+                   ("delay_scales", "--delay-scales", None), ("engine_opt", "--engine-opt", []))
+
+
 def run(args) -> int:
     """Run ``emdflow eval`` with parsed arguments; returns the exit code."""
     from emdflow.tools import (ToolError, make_estimator, output_problem, plot_type_problem, progress_bar,
                                refuse_same_outputs)
 
+    if args.from_csv:
+        given = [option for key, option, default in _FLIGHT_OPTIONS if getattr(args, key, default) != default]
+        if given:
+            raise ToolError(f"--from-csv {args.from_csv} flies nothing: {', '.join(given)} would have no effect "
+                            "(leave them out, or fly again without --from-csv)", 2)
     label = args.label.strip()
     if not label or label.lower() == "dis":  # (results are kept per method name)
         raise ToolError(f"--label {args.label!r}: must name the engine, not be empty or 'dis' (OpenCV DIS's "
