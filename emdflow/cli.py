@@ -111,7 +111,7 @@ def run_flow(args) -> int:
 
     from emdflow import summarize
     from emdflow.tools import (ToolError, check_count, check_positive, frames_origin, make_estimator, output_problem,
-                               progress_bar, refuse_overwrite, refuse_same_outputs)
+                               progress_bar, refuse_overwrite, refuse_same_outputs, writing)
     from emdflow.tools.flo import write_flo
     from emdflow.tools.flowviz import render_flow_frame
     from emdflow.tools.video_io import MAX_VIDEO_SIDE, VideoWriter
@@ -186,7 +186,7 @@ def run_flow(args) -> int:
         k = min(len(x) for x in store.values()) if store is not None else 0
         if k:  # (an interrupt may land between the appends of one frame)
             # through a file object: given a name, numpy appends ".npz" to one without it
-            with open(args.npz, "wb") as npz_file:
+            with writing("--npz", args.npz), open(args.npz, "wb") as npz_file:
                 _write_npz(npz_file, store, k, fps, est.params.speeds)
     if args.snapshot and n:
         import cv2

@@ -302,6 +302,21 @@ def test_eval_from_csv_without_engine_rows_is_an_error(tmp_path, capsys):
     _one_line_error(capsys, f"{dis_only}: no engine rows (only DIS)")
 
 
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (a device every write to fails)")
+@pytest.mark.parametrize("command, option", [
+    (["frames", "synthetic:frames=4", "--size", "96x72", "--backend", "numpy", "-q", "-o", "/dev/full"], "-o"),
+    (["flow", "synthetic:frames=4", "--size", "96x72", "--backend", "numpy", "-q", "-o", "{tmp}/f.avi",
+      "--npz", "/dev/full"], "--npz"),
+    (["eval", "--size", "96x72", "--speeds", "1", "--directions", "0", "--variants", "base", "--frames", "1",
+      "--repeats", "1", "--no-dis", "--backend", "numpy", "-q", "--plot", "", "--csv", "/dev/full"], "--csv"),
+])
+def test_a_failed_write_names_its_output(tmp_path, capsys, command, option):
+    """A write that fails (a full disk; /dev/full fails every one) said only "No space
+    left on device": a write error carries no file name. Now the option and the file."""
+    assert main([c.replace("{tmp}", str(tmp_path)) for c in command]) == 2
+    _one_line_error(capsys, f"{option} /dev/full: No space left on device")
+
+
 def test_eval_from_csv_refuses_flight_options(tmp_path, capsys):
     """--from-csv flies nothing: a flight or engine option beside it (a different speed
     list, another model) used to be ignored without a word, and the table printed was the

@@ -42,7 +42,7 @@ import contextlib
 __all__ = ["DIS_MIN_LONG_SIDE", "ToolError", "add_engine_arguments", "check_positive", "engine_kwargs",
            "frame_size_problem", "frames_origin", "interp_weights", "keyword_options", "make_estimator",
            "matplotlib_missing", "missing_folder", "number_list", "output_problem", "plot_type_problem",
-           "progress_bar", "refuse_same_outputs", "texture_names_problem"]
+           "progress_bar", "refuse_same_outputs", "texture_names_problem", "writing"]
 
 #: OpenCV DIS (preset ULTRAFAST, patches of 8 px) needs a frame whose longer side is at
 #: least this many px (measured with OpenCV 5.0 for every size from 8x8 to 79x79: it
@@ -77,6 +77,20 @@ class ToolError(Exception):
     def __init__(self, message: str, code: int = 2):
         super().__init__(message)
         self.code = code
+
+
+@contextlib.contextmanager
+def writing(option: str, path):
+    """Report an ``OSError`` raised while writing ``path`` as a :class:`ToolError` naming
+    the option and the file: a failed write carries no file name, and "No space left on
+    device" alone did not say which output (a pipe closed by its reader, ``BrokenPipeError``,
+    is left to the command's quiet handling)."""
+    try:
+        yield
+    except BrokenPipeError:
+        raise
+    except OSError as e:
+        raise ToolError(f"{option} {path}: {e.strerror or e}", 2) from None
 
 
 def frames_origin(args) -> str:

@@ -801,7 +801,7 @@ _FLIGHT_OPTIONS = (("textures", "--textures", None), ("speeds", "--speeds", None
 def run(args) -> int:
     """Run ``emdflow eval`` with parsed arguments; returns the exit code."""
     from emdflow.tools import (ToolError, make_estimator, output_problem, plot_type_problem, progress_bar,
-                               refuse_same_outputs)
+                               refuse_same_outputs, writing)
 
     if args.from_csv:
         given = [option for key, option, default in _FLIGHT_OPTIONS if getattr(args, key, default) != default]
@@ -833,11 +833,13 @@ def run(args) -> int:
             raise ToolError(f"{args.from_csv}: no engine rows (only DIS)", 2)
         print(format_table(rows, engine_label=label))
         if args.markdown:
-            Path(args.markdown).write_text(format_markdown(rows, engine_label=label))
+            with writing("--markdown", args.markdown):
+                Path(args.markdown).write_text(format_markdown(rows, engine_label=label))
             print(f"wrote {args.markdown}")
         if args.plot:
             title = args.title or f"{label.upper()} vs OpenCV DIS ULTRAFAST ({Path(args.from_csv).name})"
-            plot_results(rows, args.plot, title=title, engine_label=label)
+            with writing("--plot", args.plot):
+                plot_results(rows, args.plot, title=title, engine_label=label)
             print(f"wrote {args.plot}")
         return 0
     try:
@@ -865,15 +867,18 @@ def run(args) -> int:
     print()
     print(format_table(rows, engine_label=args.label))
     if args.csv:
-        write_csv(rows, args.csv)
+        with writing("--csv", args.csv):
+            write_csv(rows, args.csv)
         print(f"wrote {args.csv}")
     if args.markdown:
-        Path(args.markdown).write_text(format_markdown(rows, engine_label=args.label))
+        with writing("--markdown", args.markdown):
+            Path(args.markdown).write_text(format_markdown(rows, engine_label=args.label))
         print(f"wrote {args.markdown}")
     if args.plot:
         title = (f"{args.label.upper()} ({est_probe.backend}) vs OpenCV DIS ULTRAFAST, {config.width}x{config.height}, "
                  f"{config.n_flights} flights")
-        plot_results(rows, args.plot, title=args.title or title, engine_label=args.label)
+        with writing("--plot", args.plot):
+            plot_results(rows, args.plot, title=args.title or title, engine_label=args.label)
         print(f"wrote {args.plot}")
     return 0
 

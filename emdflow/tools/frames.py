@@ -83,7 +83,8 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     """Run ``emdflow frames`` with parsed arguments; returns the exit code."""
     from emdflow import summarize
-    from emdflow.tools import ToolError, check_positive, frames_origin, make_estimator, open_input, progress_bar
+    from emdflow.tools import (ToolError, check_positive, frames_origin, make_estimator, open_input, progress_bar,
+                               writing)
 
     check_positive("--focal-length-px", args.focal_length_px, "px")
     if args.output == "-":  # the usual name of stdout, where the CSV goes without -o (it made a file "-")
@@ -93,17 +94,21 @@ def run(args) -> int:
         raise ToolError(f"{args.input}: no frame rate known; rates need --fps", 2)
     est = make_estimator(args, source.width, source.height, frames_from=frames_origin(args))
     out = open(args.output, "w", newline="") if args.output else sys.stdout
+    target = args.output or "(standard output)"
     try:
-        out.write(csv_header(args.focal_length_px is not None) + "\n")
+        with writing("-o", target):
+            out.write(csv_header(args.focal_length_px is not None) + "\n")
         with progress_bar(source.frame_count, "frames", disable=args.quiet or not args.output) as bar:
             for i, frame in enumerate(source):
                 s = summarize(est.update(frame))
-                out.write(format_row(i, source.fps, s.flow_x, s.flow_y, s.quality, args.focal_length_px) + "\n")
+                with writing("-o", target):
+                    out.write(format_row(i, source.fps, s.flow_x, s.flow_y, s.quality, args.focal_length_px) + "\n")
                 bar.update(1)
     finally:
         source.close()
-        if out is not sys.stdout:
-            out.close()
-        else:
-            out.flush()
+        with writing("-o", target):
+            if out is not sys.stdout:
+                out.close()
+            else:
+                out.flush()
     return 0
