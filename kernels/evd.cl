@@ -14,7 +14,8 @@
  * ambiguous (no output). Output per axis: five bit planes, the winning channel index
  * c + 1 (4 bits) and the sign; the host turns them into int8 codes +-(c+1) only when the
  * dense field is read. On every EVIDENCE_ROW_STEP-th row the detections are also binned
- * for the summary (evidence.cl): one launch less, and the planes are still in L1.
+ * for the summary (evidence.cl): one launch less, and the fused planes are binned
+ * straight from the registers.
  * The axes are fused one after the other: the fusion state of one axis (6 vectors) plus
  * the template operands fit the 16 AVX2 registers; both axes at once spilled.
  * With DIAGONAL, runs that hold an evidence row also run the detectors along the two

@@ -112,7 +112,8 @@ def test_orientation_lookup_is_the_reference_count(monkeypatch, portable):
         monkeypatch.setenv(opencl_backend.PORTABLE_ENV, "1")
     eng = opencl_backend.OpenCLEngine(64, 48, EngineParams())
     source = opencl_backend.program_source(eng.device, eng.layout) + _ORIENTATION_TEST_KERNEL
-    assert ("#define EMD_CLANG_BUILTINS" in source) != portable
+    if "portable computing language" in eng.device.platform.name.lower():
+        assert ("#define EMD_CLANG_BUILTINS" in source) != portable
     program = cl.Program(eng.ctx, source).build(options=["-cl-std=CL1.2"])
     g = _orientation_test_gradients()
     bins = np.empty(len(g), np.int32)
@@ -126,6 +127,21 @@ def test_orientation_lookup_is_the_reference_count(monkeypatch, portable):
     assert wrong.size == 0, f"{wrong.size} gradients binned differently, e.g. {g[wrong[:5]].tolist()}: " \
                             f"{bins[wrong[:5]].tolist()} != {expected[wrong[:5]].tolist()}"
     assert set(np.unique(expected)) == set(range(64))  # every bin was reached
+
+
+def test_orientation_cells_refuse_boundaries_too_close_for_the_lookup(monkeypatch):
+    """Two boundaries less than 2 cells apart could both lie in one cell's range, and the
+    kernel tests only one: the table is refused instead of built wrong."""
+    table = EngineParams.orientation_table().copy()
+    table[1] = table[0] + [-1, 1]  # a direction a hair past boundary 0
+    monkeypatch.setattr(EngineParams, "orientation_table", staticmethod(lambda: table))
+    opencl_backend.orientation_cells.cache_clear()
+    try:
+        with pytest.raises(ValueError, match="closer than 2"):
+            opencl_backend.orientation_cells()
+    finally:
+        monkeypatch.undo()
+        opencl_backend.orientation_cells.cache_clear()
 
 
 def test_orientation_cells_are_exact_bounds():

@@ -317,6 +317,20 @@ def test_a_failed_write_names_its_output(tmp_path, capsys, command, option):
     _one_line_error(capsys, f"{option} /dev/full: No space left on device")
 
 
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (a device every write to fails)")
+def test_a_failed_write_to_standard_output_names_it(tmp_path):
+    """emdflow frames without -o writes the CSV to standard output; a failed write there
+    is named as such (there is no -o to name)."""
+    import subprocess
+
+    with open("/dev/full", "w") as full:
+        result = subprocess.run([sys.executable, "-m", "emdflow", "frames", "synthetic:frames=4", "--size", "96x72",
+                                 "--backend", "numpy", "-q"], stdout=full, stderr=subprocess.PIPE, text=True,
+                                timeout=120, cwd=tmp_path)
+    assert result.returncode == 2
+    assert result.stderr.strip() == "emdflow frames: error: standard output: No space left on device", result.stderr
+
+
 def test_eval_from_csv_refuses_flight_options(tmp_path, capsys):
     """--from-csv flies nothing: a flight or engine option beside it (a different speed
     list, another model) used to be ignored without a word, and the table printed was the
@@ -327,7 +341,7 @@ def test_eval_from_csv_refuses_flight_options(tmp_path, capsys):
     write_csv([{**dict.fromkeys(CSV_COLUMNS, 0.5), "variant": "base", "method": "emd", "speed": 1.0,
                 "frames": 2}], saved)
     for extra in (["--speeds", "2,3"], ["--model", "extended", "--quick"], ["--seed", "4"],
-                  ["--engine-opt", "threshold=3"], ["--label", "mine"]):
+                  ["--engine-opt", "threshold=3"], ["--label", "mine"], ["--csv", str(tmp_path / "other.csv")]):
         assert main(["eval", "--from-csv", str(saved), "--plot", "", *extra]) == 2
         _one_line_error(capsys, f"--from-csv {saved} flies nothing", *(e for e in extra if e.startswith("--")))
     assert main(["eval", "--from-csv", str(saved), "--plot", ""]) == 0

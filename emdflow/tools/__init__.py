@@ -82,15 +82,15 @@ class ToolError(Exception):
 @contextlib.contextmanager
 def writing(option: str, path):
     """Report an ``OSError`` raised while writing ``path`` as a :class:`ToolError` naming
-    the option and the file: a failed write carries no file name, and "No space left on
-    device" alone did not say which output (a pipe closed by its reader, ``BrokenPipeError``,
-    is left to the command's quiet handling)."""
+    the option (none: ``""``) and the file: a failed write carries no file name, and "No
+    space left on device" alone did not say which output (a pipe closed by its reader,
+    ``BrokenPipeError``, is left to the command's quiet handling)."""
     try:
         yield
     except BrokenPipeError:
         raise
     except OSError as e:
-        raise ToolError(f"{option} {path}: {e.strerror or e}", 2) from None
+        raise ToolError(f"{option + ' ' if option else ''}{path}: {e.strerror or e}", 2) from None
 
 
 def frames_origin(args) -> str:

@@ -575,6 +575,8 @@ def write_csv(rows: list[dict], path) -> None:
 
 
 _FLOOR = 0.05  # plotted floor of the log axes (% and degrees)
+#: The CSV ``emdflow eval`` writes unless told otherwise.
+DEFAULT_CSV = "emdflow_eval.csv"
 #: The plot ``emdflow eval`` draws unless told otherwise (where matplotlib is installed).
 DEFAULT_PLOT = "emdflow_eval.png"
 
@@ -615,6 +617,8 @@ def plot_results(rows: list[dict], path, *, title: str | None = None, engine_lab
     Writes a PNG with matplotlib's Agg backend (no display needed). Solid lines: the
     engine; dashed: DIS.
     """
+    from emdflow.tools import writing
+
     import matplotlib
 
     matplotlib.use("Agg", force=True)
@@ -653,7 +657,8 @@ def plot_results(rows: list[dict], path, *, title: str | None = None, engine_lab
     fig.tight_layout(rect=(0, 0.1, 1, 1))
     fig.legend(handles, labels, loc="lower center", ncol=min(6, max(1, len(labels) // 2)), fontsize=7,
                frameon=False)
-    fig.savefig(path)  # (the image type from the file ending plot_type_problem checked)
+    with writing("--plot", path):
+        fig.savefig(path)  # (the image type from the file ending plot_type_problem checked)
     plt.close(fig)
 
 
@@ -709,7 +714,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true",
                    help="small run: gravel, 160x120, 7 speeds, 4 directions, variants base,contrast,zoom")
     p.add_argument("--no-dis", action="store_true", help="skip OpenCV DIS")
-    p.add_argument("--csv", default="emdflow_eval.csv", metavar="PATH", help="CSV output (default %(default)s)")
+    p.add_argument("--csv", metavar="PATH", help=f"CSV output (default {DEFAULT_CSV})")
     p.add_argument("--plot", default=None, metavar="PATH",
                    help=f"PNG plot (default {DEFAULT_PLOT} where matplotlib is installed, the "
                         "'tools' extra; '' to skip)")
@@ -792,7 +797,7 @@ _FLIGHT_OPTIONS = (("textures", "--textures", None), ("speeds", "--speeds", None
                    ("directions", "--directions", None), ("variants", "--variants", None),
                    ("size", "--size", None), ("frames", "--frames", None), ("repeats", "--repeats", None),
                    ("seed", "--seed", 1), ("quick", "--quick", False), ("no_dis", "--no-dis", False),
-                   ("label", "--label", "emd"), ("backend", "--backend", "opencl"), ("model", "--model", None),
+                   ("csv", "--csv", None), ("label", "--label", "emd"), ("backend", "--backend", "opencl"), ("model", "--model", None),
                    ("device", "--device", None), ("scales", "--scales", None), ("threshold", "--threshold", None),
                    ("prefilter_size", "--prefilter-size", None), ("delays", "--delays", None),
                    ("delay_scales", "--delay-scales", None), ("engine_opt", "--engine-opt", []))
@@ -808,6 +813,8 @@ def run(args) -> int:
         if given:
             raise ToolError(f"--from-csv {args.from_csv} flies nothing: {', '.join(given)} would have no effect "
                             "(leave them out, or fly again without --from-csv)", 2)
+    if not args.from_csv and args.csv is None:
+        args.csv = DEFAULT_CSV
     label = args.label.strip()
     if not label or label.lower() == "dis":  # (results are kept per method name)
         raise ToolError(f"--label {args.label!r}: must name the engine, not be empty or 'dis' (OpenCV DIS's "
@@ -838,8 +845,7 @@ def run(args) -> int:
             print(f"wrote {args.markdown}")
         if args.plot:
             title = args.title or f"{label.upper()} vs OpenCV DIS ULTRAFAST ({Path(args.from_csv).name})"
-            with writing("--plot", args.plot):
-                plot_results(rows, args.plot, title=title, engine_label=label)
+            plot_results(rows, args.plot, title=title, engine_label=label)
             print(f"wrote {args.plot}")
         return 0
     try:
@@ -877,8 +883,7 @@ def run(args) -> int:
     if args.plot:
         title = (f"{args.label.upper()} ({est_probe.backend}) vs OpenCV DIS ULTRAFAST, {config.width}x{config.height}, "
                  f"{config.n_flights} flights")
-        with writing("--plot", args.plot):
-            plot_results(rows, args.plot, title=args.title or title, engine_label=args.label)
+        plot_results(rows, args.plot, title=args.title or title, engine_label=args.label)
         print(f"wrote {args.plot}")
     return 0
 

@@ -93,20 +93,21 @@ def run(args) -> int:
     if args.focal_length_px is not None and not source.fps:
         raise ToolError(f"{args.input}: no frame rate known; rates need --fps", 2)
     est = make_estimator(args, source.width, source.height, frames_from=frames_origin(args))
-    out = open(args.output, "w", newline="") if args.output else sys.stdout
-    target = args.output or "(standard output)"
+    option, target = ("-o", args.output) if args.output else ("", "standard output")
+    with writing(option, target):
+        out = open(args.output, "w", newline="") if args.output else sys.stdout
     try:
-        with writing("-o", target):
+        with writing(option, target):
             out.write(csv_header(args.focal_length_px is not None) + "\n")
         with progress_bar(source.frame_count, "frames", disable=args.quiet or not args.output) as bar:
             for i, frame in enumerate(source):
                 s = summarize(est.update(frame))
-                with writing("-o", target):
+                with writing(option, target):
                     out.write(format_row(i, source.fps, s.flow_x, s.flow_y, s.quality, args.focal_length_px) + "\n")
                 bar.update(1)
     finally:
         source.close()
-        with writing("-o", target):
+        with writing(option, target):
             if out is not sys.stdout:
                 out.close()
             else:
