@@ -289,6 +289,35 @@ def test_depthai_replay_of_a_file_without_frames_ends(request, tmp_path):
         source.close()
 
 
+def test_depthai_replay_says_when_a_file_stops_short(request, tmp_path, caplog):
+    """A recording cut off partway replays its first part and stops as at its end; the
+    video: source warned about such a file, the depthai-replay: source said nothing (a
+    flight log would show a short recording as a complete one). A whole file: no warning."""
+    pytest.importorskip("depthai")
+    if not run_isolated_from_native_crashes(request, timeout=90.0):
+        return
+    frames = flight_frames(40, width=96, height=72)
+    full = write_video(tmp_path / "full.avi", frames)
+    with caplog.at_level(logging.WARNING):
+        source = open_source(f"depthai-replay:{full}")
+        try:
+            whole = _read_all(source)
+        finally:
+            source.close()
+        assert len(whole) == len(frames) and "declares" not in caplog.text
+        cut = tmp_path / "cut.avi"
+        data = full.read_bytes()
+        cut.write_bytes(data[:len(data) * 6 // 10])
+        source = open_source(f"depthai-replay:{cut}")
+        try:
+            got = _read_all(source)
+        finally:
+            source.close()
+    assert 0 < len(got) < len(frames) - 2
+    assert (f"cut.avi: the replay stopped after {len(got)} of the {len(frames)} frames the file declares"
+            in caplog.text), caplog.text
+
+
 def test_a_paced_depthai_replay_drops_what_a_slow_reader_misses(request, tmp_path):
     """``--realtime`` replay behaves like a camera: a reader slower than the file's frame
     rate gets the newest frames (the ones it missed are skipped) and each frame's capture

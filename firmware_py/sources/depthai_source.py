@@ -32,7 +32,7 @@ import numpy as np
 
 from ..clock import host_us
 from .base import Frame, FrameSource, SourceConfigError, SourceError, fit_to
-from .video import probe_video
+from .video import probe_video, stopped_short
 
 __all__ = ["DepthAISource", "MONO_SOCKETS"]
 
@@ -137,6 +137,8 @@ class DepthAISource(FrameSource):
         self.loop, self.realtime = bool(loop), bool(realtime)
         self.waits_in_read = self.realtime and not self.live  # (ReplayVideo's own pacing)
         self.exposure_us, self.gain = exposure_us, gain
+        #: a replayed file's declared frame count (None: a camera, or none declared)
+        self.declared_frames = None
         if self.live:
             socket = socket.upper()
             if socket not in MONO_SOCKETS:
@@ -146,7 +148,7 @@ class DepthAISource(FrameSource):
             self.width, self.height, self.fps = int(width or 320), int(height or 240), float(fps)
         else:
             self.uri = f"depthai-replay:{replay_path}"
-            native_w, native_h, file_fps = probe_video(replay_path)
+            native_w, native_h, file_fps, self.declared_frames = probe_video(replay_path, frames=True)
             if not (file_fps > 0 and math.isfinite(file_fps)):
                 file_fps = float(fps)
             self.width, self.height, self.fps = int(width or native_w), int(height or native_h), float(file_fps)
@@ -157,6 +159,7 @@ class DepthAISource(FrameSource):
         self._first = None  # the live camera's first frame, read by open()
         self._playing = False  # a replay's pipeline started (at the first read)
         self._index = 0
+        self._last_index = -1  # a replay's last frame index (its position in the file)
         self._period_us = 1e6 / self.fps
 
     def _note_crop(self, delivered_w: int, delivered_h: int, what: str) -> None:
@@ -248,6 +251,7 @@ class DepthAISource(FrameSource):
             hint = " (is an OAK connected, and the udev rule for 03e7 installed?)" if self.live else ""
             raise SourceError(f"{self.uri}: cannot start the DepthAI pipeline: {exc}{hint}") from None
         self._index = 0
+        self._last_index = -1
         self._playing = self.live
         if self.live:
             # the crop the camera applies is known from its frames: wait for the first
@@ -325,10 +329,21 @@ class DepthAISource(FrameSource):
                 return msg
             if ended:
                 log.debug("%s: the replay stopped: the end of the file", self.uri)
+                self._note_short_file()
                 return None
             if time.monotonic() >= deadline:
                 log.info("%s: no frame for %.1f s: the end of the file", self.uri, timeout)
+                self._note_short_file()
                 return None
+
+    def _note_short_file(self) -> None:
+        """Warn when a replay ended well before the frames its file declares: the replay
+        stops at a cut-off or corrupt part as at the end (the video: source says the same).
+        By the last frame's position in the file, so a paced replay's dropped frames do not
+        count; a looped replay rewinds instead of ending."""
+        if not self.loop and stopped_short(self._last_index + 1, self.declared_frames):
+            log.warning("%s: the replay stopped after %d of the %d frames the file declares (cut off or "
+                        "corrupt?)", self.uri, self._last_index + 1, self.declared_frames)
 
     def _to_frame(self, msg) -> Frame:
         received = host_us()
@@ -337,6 +352,7 @@ class DepthAISource(FrameSource):
             image = image[:, :, 0]
         image = np.ascontiguousarray(image, dtype=np.uint8)
         index = int(msg.getSequenceNum())
+        self._last_index = index
         if self.live:
             stamp = int(msg.getTimestampDevice().total_seconds() * 1e6)
         else:

@@ -42,8 +42,10 @@ def is_gray_stream(cap: cv2.VideoCapture) -> bool:
     return tag in _GRAY8_TAGS
 
 
-def probe_video(path: str | Path) -> tuple[int, int, float]:
-    """Return (width, height, fps) of a video file; raise :class:`SourceError` naming it."""
+def probe_video(path: str | Path, *, frames: bool = False) -> tuple:
+    """Return (width, height, fps) of a video file, and with ``frames`` the frame count its
+    container declares (None for none) as a fourth value; raise :class:`SourceError`
+    naming it."""
     path = Path(path)
     if not path.is_file():
         # (an existing path that is no file is a wrong path, not a missing recording)
@@ -57,11 +59,25 @@ def probe_video(path: str | Path) -> tuple[int, int, float]:
         width = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
         height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
         fps = float(cap.get(cv2.CAP_PROP_FPS))
+        declared = declared_frame_count(cap)
     finally:
         cap.release()
     if width <= 0 or height <= 0:
         raise SourceError(f"video file {str(path)!r}: no video stream")
-    return width, height, fps
+    return (width, height, fps, declared) if frames else (width, height, fps)
+
+
+def declared_frame_count(cap) -> int | None:
+    """The frame count an opened ``cv2.VideoCapture``'s container declares (approximate: a
+    few frames either way, see ``_DECLARED_SLACK``), or None where it declares none."""
+    declared = cap.get(cv2.CAP_PROP_FRAME_COUNT)
+    return int(declared) if declared > 0 and math.isfinite(declared) else None
+
+
+def stopped_short(delivered: int, declared: int | None) -> bool:
+    """Whether a pass over a file that delivered ``delivered`` frames stopped well short of
+    the ``declared`` count (cut off or corrupt partway), beyond the containers' slack."""
+    return declared is not None and delivered < declared - _DECLARED_SLACK
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:
@@ -134,8 +150,7 @@ class VideoFileSource(FrameSource):
         self._index = 0
         # what the container declares (approximate: a few frames either way), to tell a file
         # cut off or corrupt partway from one read to its end
-        declared = cap.get(cv2.CAP_PROP_FRAME_COUNT)
-        self.declared_frames = int(declared) if declared > 0 and math.isfinite(declared) else None
+        self.declared_frames = declared_frame_count(cap)
         self._decoded = 0  # frames decoded since the start of the file
         #: passes over the file that stopped decoding short of its declared frames (warned once)
         self.short_passes = 0
@@ -158,7 +173,7 @@ class VideoFileSource(FrameSource):
         if ok:
             self._decoded += 1
             return image
-        if self.declared_frames is not None and self._decoded < self.declared_frames - _DECLARED_SLACK:
+        if stopped_short(self._decoded, self.declared_frames):
             # OpenCV reports a stream that stops decoding like its end: say which it looks
             # like (once: a looped file would say it at every rewind)
             self.short_passes += 1
