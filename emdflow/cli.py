@@ -110,7 +110,7 @@ def run_flow(args) -> int:
     import numpy as np
 
     from emdflow import summarize
-    from emdflow.tools import (ToolError, check_count, check_positive, frames_origin, make_estimator, output_problem,
+    from emdflow.tools import (ToolError, check_count, check_positive, make_estimator, output_problem,
                                progress_bar, refuse_overwrite, refuse_same_outputs, writing)
     from emdflow.tools.flo import write_flo
     from emdflow.tools.flowviz import render_flow_frame
@@ -155,7 +155,7 @@ def run_flow(args) -> int:
             flo_dir.mkdir(exist_ok=True)
         except OSError as e:
             raise ToolError(f"{args.flo_dir}: cannot create folder ({e.strerror})", 2) from None
-    est = make_estimator(args, source.width, source.height, frames_from=frames_origin(args))
+    est = make_estimator(args, source.width, source.height)
     store = {"u": [], "v": [], "flow_x": [], "flow_y": [], "quality": []} if args.npz else None
     n = 0
     interrupted = False

@@ -426,6 +426,22 @@ class CameraFlight(_RenderedFrames):
             cy = self.start[1] - self.flow[1] * float(ms.sum())
         return cx, cy, m
 
+    def view_problem(self, t: int) -> str | None:
+        """Why frame ``t`` cannot be rendered (the message :meth:`render` raises), or None:
+        its ground coordinates overflow, or its view is more than 256 texture sizes across.
+        Cheap: nothing is drawn."""
+        t = int(t)
+        return self._view_problem(t, *self._camera(t))
+
+    def _view_problem(self, t: int, cx: float, cy: float, m: float) -> str | None:
+        if not (math.isfinite(cx) and math.isfinite(cy) and math.isfinite(m)):
+            return f"frame {t}: the camera's ground position ({cx:g}, {cy:g}) px or scale {m:g} overflows"
+        if max(self.width, self.height) * m > self._max_view:
+            th, tw = self.texture.shape
+            return (f"frame {t}: {m:g} ground px per image px (expansion_rate={self.expansion_rate:g}): "
+                    f"the view would be more than {_MAX_VIEW_TEXTURES} widths of the {tw}x{th} texture across")
+        return None
+
     def render(self, t: int) -> np.ndarray:
         """Render frame ``t`` as a 2-D uint8 array of shape (height, width).
 
@@ -438,15 +454,9 @@ class CameraFlight(_RenderedFrames):
         """
         t = int(t)
         cx, cy, m = self._camera(t)
+        if problem := self._view_problem(t, cx, cy, m):
+            raise ValueError(problem)
         period_x, period_y = self._periods
-        if not (math.isfinite(cx) and math.isfinite(cy) and math.isfinite(m)):
-            raise ValueError(f"frame {t}: the camera's ground position ({cx:g}, {cy:g}) px or scale {m:g} "
-                             "overflows")
-        if max(self.width, self.height) * m > self._max_view:
-            th, tw = self.texture.shape
-            raise ValueError(f"frame {t}: {m:g} ground px per image px (expansion_rate={self.expansion_rate:g}): "
-                             f"the view would be more than {_MAX_VIEW_TEXTURES} widths of the {tw}x{th} "
-                             "texture across")
         # far flights: shift by whole periods (exact in floating point; same samples)
         if period_x > 0 and abs(cx) > _FOLD_PERIODS * period_x:
             cx = math.fmod(cx, period_x)

@@ -93,9 +93,12 @@ def writing(option: str, path):
         raise ToolError(f"{option + ' ' if option else ''}{path}: {e.strerror or e}", 2) from None
 
 
-def frames_origin(args) -> str:
-    """Where a tool's frame size comes from, for its errors: ``--size WxH`` or the input."""
-    return f"--size {args.size}" if getattr(args, "size", None) else str(args.input)
+def frames_origin(args) -> str | None:
+    """Where a tool's frame size comes from, for its errors: ``--size WxH`` or the input
+    (None for options with neither)."""
+    if getattr(args, "size", None):
+        return f"--size {args.size}"
+    return str(args.input) if getattr(args, "input", None) is not None else None
 
 
 def frame_size_problem(width: int, height: int, *, dis: bool, dis_role: str = "",
@@ -342,9 +345,9 @@ def keyword_options(items, option: str) -> dict:
     return kw
 
 
-def make_estimator(args, width: int, height: int, *, frames_from: str | None = None):
-    """A :class:`emdflow.FlowEstimator` for parsed command-line options; ``frames_from``
-    names where the frames' size came from (the input, ``--size``) for an error about it.
+def make_estimator(args, width: int, height: int):
+    """A :class:`emdflow.FlowEstimator` for parsed command-line options; an error about
+    the frame size names where it came from (:func:`frames_origin`).
 
     Raises
     ------
@@ -365,7 +368,8 @@ def make_estimator(args, width: int, height: int, *, frames_from: str | None = N
     except TypeError as e:
         raise ToolError(f"engine options: {e}", 2) from None
     except FrameSizeError as e:  # the input's fault, not an option's
-        raise ToolError(f"{frames_from}: {e}" if frames_from else str(e), 2) from None
+        origin = frames_origin(args)
+        raise ToolError(f"{origin}: {e}" if origin else str(e), 2) from None
     except ValueError as e:
         raise ToolError(f"engine options: {e}", 2) from None
     except (RuntimeError, ImportError) as e:

@@ -160,7 +160,7 @@ import numpy as np
 
 from emdflow.params import GRADIENT_CLASS_STEPS, ORIENTATION_BINS, THRESHOLD_MODES, EngineParams
 from emdflow.params import MODELS as _MODELS
-from emdflow.tools import ToolError, frame_size_problem, interp_weights, output_problem, texture_names_problem
+from emdflow.tools import ToolError, check_positive, frame_size_problem, interp_weights, output_problem, texture_names_problem
 
 CALIBRATION_TEXTURES = ("moon", "coffee", "astronaut", "rocket")
 #: Kinds of ground a table is measured over (``fit --ground``): the photographs' edges, or
@@ -1280,8 +1280,10 @@ def main(argv=None):
         # (nan or inf flew a traceback; a negative contrast or a drift to -500 % garbage)
         if not math.isfinite(a.offset):
             ap.error(f"--offset {a.offset:g}: must be a finite number (radians)")
-        if not (math.isfinite(a.contrast) and a.contrast > 0):
-            ap.error(f"--contrast {a.contrast:g}: must be a finite number > 0 (contrast factor)")
+        try:
+            check_positive("--contrast", a.contrast, "contrast factor")
+        except ToolError as exc:
+            ap.error(str(exc))
         if not (math.isfinite(a.drift) and a.drift > -1.0):
             ap.error(f"--drift {a.drift:g}: must be a finite number > -1 (relative exposure change)")
         try:

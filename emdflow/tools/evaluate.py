@@ -791,16 +791,18 @@ def _plot_path(args) -> str:
     return args.plot
 
 
-#: options that shape a flight or its engine, with their defaults: ``--from-csv`` flies
-#: nothing, so any of them set beside it is refused rather than silently ignored
-_FLIGHT_OPTIONS = (("textures", "--textures", None), ("speeds", "--speeds", None),
-                   ("directions", "--directions", None), ("variants", "--variants", None),
-                   ("size", "--size", None), ("frames", "--frames", None), ("repeats", "--repeats", None),
-                   ("seed", "--seed", 1), ("quick", "--quick", False), ("no_dis", "--no-dis", False),
-                   ("csv", "--csv", None), ("label", "--label", "emd"), ("backend", "--backend", "opencl"), ("model", "--model", None),
-                   ("device", "--device", None), ("scales", "--scales", None), ("threshold", "--threshold", None),
-                   ("prefilter_size", "--prefilter-size", None), ("delays", "--delays", None),
-                   ("delay_scales", "--delay-scales", None), ("engine_opt", "--engine-opt", []))
+#: the options ``--from-csv`` still reads (its outputs and their look); every other one
+#: shapes a flight or its engine, and set beside it is refused rather than silently ignored
+_FROM_CSV_OPTIONS = frozenset({"from_csv", "plot", "markdown", "title", "quiet", "help"})
+
+
+def _flight_options_given(args) -> list[str]:
+    """The options of ``args`` set away from their defaults that ``--from-csv`` would
+    ignore, as their long names (the defaults read from :func:`add_arguments` itself)."""
+    parser = argparse.ArgumentParser(add_help=False)
+    add_arguments(parser)
+    return [max(a.option_strings, key=len) for a in parser._actions
+            if a.dest not in _FROM_CSV_OPTIONS and getattr(args, a.dest, a.default) != a.default]
 
 
 def run(args) -> int:
@@ -809,7 +811,7 @@ def run(args) -> int:
                                refuse_same_outputs, writing)
 
     if args.from_csv:
-        given = [option for key, option, default in _FLIGHT_OPTIONS if getattr(args, key, default) != default]
+        given = _flight_options_given(args)
         if given:
             raise ToolError(f"--from-csv {args.from_csv} flies nothing: {', '.join(given)} would have no effect "
                             "(leave them out, or fly again without --from-csv)", 2)

@@ -83,7 +83,7 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     """Run ``emdflow frames`` with parsed arguments; returns the exit code."""
     from emdflow import summarize
-    from emdflow.tools import (ToolError, check_positive, frames_origin, make_estimator, open_input, progress_bar,
+    from emdflow.tools import (ToolError, check_positive, make_estimator, open_input, progress_bar,
                                writing)
 
     check_positive("--focal-length-px", args.focal_length_px, "px")
@@ -92,7 +92,7 @@ def run(args) -> int:
     source = open_input(args)
     if args.focal_length_px is not None and not source.fps:
         raise ToolError(f"{args.input}: no frame rate known; rates need --fps", 2)
-    est = make_estimator(args, source.width, source.height, frames_from=frames_origin(args))
+    est = make_estimator(args, source.width, source.height)
     option, target = ("-o", args.output) if args.output else ("", "standard output")
     with writing(option, target):
         out = open(args.output, "w", newline="") if args.output else sys.stdout

@@ -96,9 +96,13 @@ def _estimator(model: str, backend: str, width: int, height: int):
 # ---------------------------------------------------------------------------------------
 # Measurement
 # ---------------------------------------------------------------------------------------
+#: the flights' frame size and supersampling (px)
+FLIGHT_WIDTH, FLIGHT_HEIGHT, FLIGHT_SUPERSAMPLE = 320, 240, 2
+
+
 def evaluate(models=("paper", "extended"), textures=EVALUATION_TEXTURES, rates=DEFAULT_RATES,
              translations=DEFAULT_TRANSLATIONS, frames: int = 8, flights: int = 6,
-             backend: str = "opencl", seed: int = 1, width: int = 320, height: int = 240,
+             backend: str = "opencl", seed: int = 1, width: int = FLIGHT_WIDTH, height: int = FLIGHT_HEIGHT,
              progress=None) -> dict:
     """Fly every model × translation × texture × rate ``flights`` times (each from its own
     random start on the photograph) and measure ``frames`` ready frames per flight.
@@ -124,7 +128,7 @@ def evaluate(models=("paper", "extended"), textures=EVALUATION_TEXTURES, rates=D
                         start = (float(rng.uniform(0.4, 0.6)) * tw, float(rng.uniform(0.4, 0.6)) * th)
                         flight = CameraFlight(texture_source(texture), width=width, height=height,
                                               flow=tuple(uv), expansion_rate=rate, noise_sigma=2.0,
-                                              supersample=2, seed=int(rng.integers(1 << 30)),
+                                              supersample=FLIGHT_SUPERSAMPLE, seed=int(rng.integers(1 << 30)),
                                               start=start)
                         est.reset()
                         for t in range(total):
@@ -451,18 +455,17 @@ def main(argv=None) -> int:
     if not all(math.isfinite(c) for uv in a.translations for c in uv):
         ap.error("--translations: u,v must be finite numbers (px/frame)")
     # a receding flight's last frame must still be renderable (a rate of -0.5 failed at frame
-    # 9 of the default flights, a traceback mid-run): its frame, rendered once per ground
+    # 9 of the default flights, a traceback mid-run): its view checked once per ground
     from emdflow.params import EngineParams
     from emdflow.synthetic import CameraFlight
 
     last = max(EngineParams(**MODELS[m]).history_frames for m in models) + a.frames - 1
     for texture in textures:
         for rate in sorted(set(a.rates)):
-            try:
-                CameraFlight(texture_source(texture), width=320, height=240, expansion_rate=rate,
-                             supersample=2).render(last)
-            except ValueError as exc:
-                ap.error(f"--rates {rate:g} over {texture} ({a.frames} frames): {exc}")
+            flight = CameraFlight(texture_source(texture), width=FLIGHT_WIDTH, height=FLIGHT_HEIGHT,
+                                  expansion_rate=rate, supersample=FLIGHT_SUPERSAMPLE)
+            if problem := flight.view_problem(last):
+                ap.error(f"--rates {rate:g} over {texture} ({a.frames} frames): {problem}")
     results = evaluate(models=models, textures=textures, rates=a.rates,
                        translations=a.translations, frames=a.frames,
                        flights=6 if a.flights is None else a.flights, backend=a.backend,

@@ -652,8 +652,7 @@ class FlowLink:
         if now - self._last_flow_host_us < (self.autopilot_timeout_s - TIMEOUT_MARGIN_S) * 1e6:
             return False
         typical = self._submit_intervals.typical
-        return typical is not None and since_submit > typical + max((SLOW_STREAM_WAIT - 1.0) * typical,
-                                                                   OVERDUE_US)
+        return typical is not None and since_submit > max(SLOW_STREAM_WAIT * typical, typical + OVERDUE_US)
 
     def _blind_keepalive(self, now: int) -> None:
         if self._last_submit_host_us is not None:

@@ -88,6 +88,11 @@ def pack(encoder: mavlink2.MAVLink, message) -> bytes:
     return data
 
 
+def sequence_number(data: bytes) -> int:
+    """The sequence number of a framed MAVLink 2 message (its header's fifth byte)."""
+    return data[4]
+
+
 #: NAMED_VALUE_FLOAT reports per second when ``extra_values`` is on.
 EXTRAS_RATE_HZ = 5.0
 
@@ -234,7 +239,7 @@ class MavlinkLink(FlowLink):
                               "integrated_x": interval.integrated_x, "integrated_y": interval.integrated_y,
                               "quality": quality, "distance": self._distance, "sensor_id": cfg.sensor_id}
             data = pack(self.encoder, msg)
-            log_fields["seq"] = data[4]
+            log_fields["seq"] = sequence_number(data)
             out.append((name, data, log_fields))
         return out
 
@@ -257,16 +262,16 @@ class MavlinkLink(FlowLink):
         self._last_extras_us = ts
         now = host_us()
         for name, value in sample.extras:
-            msg = self.encoder.named_value_float_encode(
-                time_boot_ms=(ts // 1000) & 0xFFFFFFFF, name=str(name)[:10].encode(), value=float(value))
-            data = pack(self.encoder, msg)
+            label, value = str(name)[:10], float(value)  # (the field holds 10 characters)
+            data = pack(self.encoder, self.encoder.named_value_float_encode(
+                time_boot_ms=(ts // 1000) & 0xFFFFFFFF, name=label.encode(), value=value))
             # (name and value have their own log columns: the rows were blank before)
             self._enqueue_other("NAMED_VALUE_FLOAT", data,
-                                {"seq": data[4], "name": str(name)[:10], "value": float(value)}, now)
+                                {"seq": sequence_number(data), "name": label, "value": value}, now)
 
     def _send_heartbeat(self, now: int, *, first: bool = False) -> None:
         data = encode_heartbeat(self.encoder)
-        self._enqueue_other("HEARTBEAT", data, {"seq": data[4]}, now, first=first)
+        self._enqueue_other("HEARTBEAT", data, {"seq": sequence_number(data)}, now, first=first)
 
     def _on_open(self, now: int) -> None:
         # A fresh parser: bytes from the previous connection must not glue onto new ones.

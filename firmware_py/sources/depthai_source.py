@@ -148,7 +148,7 @@ class DepthAISource(FrameSource):
             self.width, self.height, self.fps = int(width or 320), int(height or 240), float(fps)
         else:
             self.uri = f"depthai-replay:{replay_path}"
-            native_w, native_h, file_fps, self.declared_frames = probe_video(replay_path, frames=True)
+            native_w, native_h, file_fps, self.declared_frames = probe_video(replay_path)
             if not (file_fps > 0 and math.isfinite(file_fps)):
                 file_fps = float(fps)
             self.width, self.height, self.fps = int(width or native_w), int(height or native_h), float(file_fps)

@@ -138,6 +138,11 @@ class _NoDevice(Exception):
     """No device node for a camera given by its index."""
 
 
+def _unplugged(uri: str, node) -> SourceError:
+    """The error of a camera whose device node is missing (by path or by index)."""
+    return SourceError(f"{uri}: {node} does not exist (camera unplugged?)")
+
+
 def _open_capture(device, api):
     """OpenCV's capture of ``device``; a camera given by its index whose node is missing
     raises :class:`_NoDevice` first (OpenCV would fail too, with two warnings of its own on
@@ -238,7 +243,7 @@ class V4L2Source(FrameSource):
         if isinstance(self.device, str):
             path = Path(self.device)
             if not path.exists():
-                raise SourceError(f"{self.uri}: {self.device} does not exist (camera unplugged?)")
+                raise _unplugged(self.uri, self.device)
             # a path that is there but no V4L2 device (a folder, a file, /dev/null) never
             # becomes a camera: a setting to fix, not a camera to wait for
             if what := _not_a_camera(path):
@@ -247,7 +252,7 @@ class V4L2Source(FrameSource):
         try:
             cap = self._factory(self.device, cv2.CAP_V4L2)
         except _NoDevice as exc:
-            raise SourceError(f"{self.uri}: {exc} does not exist (camera unplugged?)") from None
+            raise _unplugged(self.uri, exc) from None
         except cv2.error as exc:  # OpenCV refusing the device outright
             raise SourceError(f"{self.uri}: cannot open the camera: {str(exc).strip()}") from exc
         if not cap.isOpened():

@@ -42,10 +42,9 @@ def is_gray_stream(cap: cv2.VideoCapture) -> bool:
     return tag in _GRAY8_TAGS
 
 
-def probe_video(path: str | Path, *, frames: bool = False) -> tuple:
-    """Return (width, height, fps) of a video file, and with ``frames`` the frame count its
-    container declares (None for none) as a fourth value; raise :class:`SourceError`
-    naming it."""
+def probe_video(path: str | Path) -> tuple[int, int, float, int | None]:
+    """Return (width, height, fps, declared frame count or None) of a video file; raise
+    :class:`SourceError` naming it."""
     path = Path(path)
     if not path.is_file():
         # (an existing path that is no file is a wrong path, not a missing recording)
@@ -64,7 +63,7 @@ def probe_video(path: str | Path, *, frames: bool = False) -> tuple:
         cap.release()
     if width <= 0 or height <= 0:
         raise SourceError(f"video file {str(path)!r}: no video stream")
-    return (width, height, fps, declared) if frames else (width, height, fps)
+    return width, height, fps, declared
 
 
 def declared_frame_count(cap) -> int | None:
@@ -116,7 +115,7 @@ class VideoFileSource(FrameSource):
                  fps: float | None = None, loop: bool = False, realtime: bool = False):
         self.uri = f"video:{path}"
         self.path = str(path)
-        native_w, native_h, file_fps = probe_video(self.path)
+        native_w, native_h, file_fps, _ = probe_video(self.path)
         self.width = int(width or native_w)
         self.height = int(height or native_h)
         if not (file_fps > 0 and math.isfinite(file_fps)):
