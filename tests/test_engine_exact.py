@@ -20,7 +20,10 @@ from emdflow.synthetic import CameraFlight
 opencl_backend = pytest.importorskip("emdflow.opencl_backend")
 
 
-def _compare(width, height, frames, params=EngineParams()):
+def _compare(width, height, frames, params=EngineParams(), each=None):
+    """Step the reference and a debug OpenCL engine through ``frames`` and assert that
+    every state, match, code, count and histogram agrees; ``each(t, ref, ocl)`` after every
+    frame checks more. Returns the number of template matches that fired."""
     ref = ReferenceEngine(width, height, params)
     ocl = opencl_backend.OpenCLEngine(width, height, params, debug=True)
     fired = 0
@@ -38,6 +41,8 @@ def _compare(width, height, frames, params=EngineParams()):
         assert np.array_equal(stats_r, stats_o), f"frame {t}: stats {stats_r} != {stats_o}"
         assert np.array_equal(hist_r, hist_o), f"frame {t}: histograms differ"
         assert np.array_equal(pos_r, pos_o), f"frame {t}: position histograms differ"
+        if each is not None:
+            each(t, ref, ocl)
     return fired
 
 
@@ -566,17 +571,17 @@ def test_local_threshold_is_exact(monkeypatch, size, tile, model, portable):
     width, height = size
     params = EngineParams(**{**MODELS[model], "threshold_mode": "local", "threshold_tile": tile,
                              "gradient_classes": True})
-    frames = _shaded_flight(width, height, 12)
-    assert _compare(width, height, frames, params) > 0
-    ref, ocl = ReferenceEngine(width, height, params), opencl_backend.OpenCLEngine(width, height, params)
     spread = 0
-    for frame in frames:
-        ref.step(frame)
-        ocl.step(frame)
-        assert np.array_equal(ref.tile_contrast, ocl.tile_contrast)
-        assert np.array_equal(ref.theta_q, ocl.theta_q)
+
+    def same_tiles(t, ref, ocl):
+        nonlocal spread
+        assert np.array_equal(ref.tile_contrast, ocl.tile_contrast), f"frame {t}: tile contrast sums differ"
+        assert np.array_equal(ref.theta_q, ocl.theta_q), f"frame {t}: tile thresholds differ"
         assert ref.theta_q.shape == params.threshold_tiles(width, height)
         spread = max(spread, int(ref.theta_q.max() - ref.theta_q.min()))
+
+    # (one pass: the debug engine checks states and matches too)
+    assert _compare(width, height, _shaded_flight(width, height, 12), params, each=same_tiles) > 0
     if width > tile:
         assert spread >= 256, "the shaded tiles should have thresholds at least 1 gray level lower"
 
