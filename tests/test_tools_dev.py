@@ -147,6 +147,12 @@ def test_calibrate_summary_refuses_bad_options(cs, tmp_path, capsys, argv, optio
     ("no flow", "no 'stats' or 'flow' array in it"),
     ("no frames", "no frames in it"),  # (an IndexError at the first frame before)
     ("0-d flow", "no frames in it"),
+    # (an IndexError traceback, or a mismatch deep inside the fit, before)
+    ("1-D hist", "its 'hist' array has shape (10,): expected one (2 or 4 axes"),
+    ("hist short", "its 'hist' array has shape (2, 2, 2, 64): expected one (2 or 4 axes, signed channels, "
+                   "bins) histogram per frame of its 'flow' (3 frames)"),
+    ("3 axes", "its 'hist' array has shape (3, 3, 2, 64)"),
+    ("stats short", "its 'stats' array has shape (2, 9): expected one row per frame of its 'flow' (3 frames)"),
 ])
 @pytest.mark.parametrize("command", ["fit", "misfit", "margin", "evaluate"])
 def test_calibrate_summary_names_a_file_that_holds_no_flights(cs, tmp_path, capsys, command, content, problem):
@@ -164,6 +170,10 @@ def test_calibrate_summary_names_a_file_that_holds_no_flights(cs, tmp_path, caps
     elif content == "no frames":
         np.savez(path, hist=np.zeros((0, 2, 2, 64)), stats=np.zeros((0, 9)), flow=np.zeros((0, 2)),
                  shape=np.array([72, 96]), frame_index=np.array(20))
+    elif content in ("1-D hist", "hist short", "3 axes", "stats short"):
+        hist = {"1-D hist": (10,), "hist short": (2, 2, 2, 64), "3 axes": (3, 3, 2, 64)}.get(content, (3, 2, 2, 64))
+        np.savez(path, hist=np.zeros(hist), stats=np.zeros((2 if content == "stats short" else 3, 9)),
+                 flow=np.ones((3, 2)), shape=np.array([72, 96]), frame_index=np.arange(3))
     else:
         path.write_bytes(content)
     argv = [command, "--data", str(path)] if command == "evaluate" else [command, str(path)]
@@ -179,6 +189,49 @@ def test_calibrate_summary_names_collected_flights_it_cannot_summarise_again(cs,
     argv = [command, "--data", str(path)] if command == "evaluate" else [command, str(path)]
     err = _refused(cs.main, argv, capsys, f"{path}: no 'shape' or 'frame_index' array in it")
     assert "only evaluate --save stores what summarising again needs" in err
+
+
+@pytest.mark.parametrize("command", ["fit", "misfit"])
+def test_calibrate_summary_refuses_flights_of_another_model(cs, tmp_path, capsys, command):
+    """fit and misfit --model extended on the paper model's flights: one line naming the
+    file and both models, before any table is looked for or fitted."""
+    path = tmp_path / "paper.npz"
+    np.savez(path, hist=np.zeros((3, 4, 14, 64)), stats=np.zeros((3, 9)), flow=np.ones((3, 2)),
+             model=np.array("paper"))
+    _refused(cs.main, [command, "--model", "extended", str(path)], capsys,
+             f"data {path}: flights of the paper model, not --model extended")
+
+
+def test_calibrate_summary_misfit_needs_the_table_it_adds_to(cs, monkeypatch, tmp_path, capsys):
+    """misfit adds a baseline to a table fit --write made: without one (the paper model's
+    line-ground table, which nobody has fitted), one line naming it and the command that
+    makes it (a FileNotFoundError traceback before)."""
+    path = tmp_path / "paper.npz"
+    np.savez(path, hist=np.zeros((3, 4, 14, 64)), stats=np.zeros((3, 9)), flow=np.ones((3, 2)),
+             model=np.array("paper"))
+    missing = tmp_path / "summary_calibration_lines_diagonal.npz"
+    monkeypatch.setattr(cs, "calibration_path", lambda *args, **kwargs: missing)
+    err = _refused(cs.main, ["misfit", "--ground", "lines", str(path)], capsys,
+                   f"misfit --model paper --ground lines: no table {missing.name} to add the baseline to")
+    assert "fit --write --model paper --ground lines makes it" in err
+
+
+def test_calibrate_summary_fit_names_too_few_flights(monkeypatch, tmp_path):
+    """Two flights leave most of the table's cells empty: the fit stops with a line that
+    says so and how many frames it had (a RuntimeError traceback from deep inside it
+    before), and writes nothing."""
+    from emdflow.tools import calibrate_summary as cs
+
+    table = tmp_path / "table.npz"  # (never the package's own table)
+    monkeypatch.setattr(cs, "calibration_path", lambda *args, **kwargs: table)
+    out = tmp_path / "few.npz"
+    cs.collect(2, str(out), frames=4, width=64, height=48, textures=("moon",))
+    with pytest.raises(SystemExit) as stop:
+        cs.main(["fit", str(out), "--write"])
+    assert not table.exists()
+    message = str(stop.value.code)
+    assert "contrast class 0: no calibration data at ψ node" in message
+    assert "2 frames are too few to fit a table (the committed ones took 9 000 flights" in message
 
 
 @pytest.mark.parametrize("argv, option", [

@@ -273,6 +273,15 @@ def stored_flights_problem(path, scored: bool = False) -> str | None:
                 return "no frames in it (its 'flow' array holds no (u, v) rows)"
         except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:  # (a corrupt member)
             return f"its 'flow' array cannot be read ({exc})"
+    try:  # (from the headers: an extended file's histograms are ~1 GB decompressed)
+        hist, stats = _stored_shape(path, "hist"), _stored_shape(path, "stats")
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
+        return f"its 'hist' or 'stats' array cannot be read ({exc})"
+    if len(hist) != 4 or hist[1] not in (2, 4) or hist[0] != len(flow):
+        return (f"its 'hist' array has shape {hist}: expected one (2 or 4 axes, signed channels, bins) "
+                f"histogram per frame of its 'flow' ({len(flow)} frames)")
+    if len(stats) != 2 or stats[0] != len(flow):
+        return f"its 'stats' array has shape {stats}: expected one row per frame of its 'flow' ({len(flow)} frames)"
     return None
 
 
@@ -425,6 +434,9 @@ CONTRAST_EDGES = {"paper": (), "extended": (3.75, 12.0)}
 GRADIENT_CLASS_TABLES = {"paper": False, "extended": True}
 #: A cell needs this much detection weight to stand on its own (else: nearest filled cell).
 MIN_CELL_WEIGHT = 100.0
+#: Calibration flights the committed edge tables were fitted on, per model (the recipe in
+#: this module's docstring; named when a fit has too few).
+COMMITTED_FLIGHTS = {"paper": "9 000", "extended": "20 000"}
 
 
 #: The axes that share a table: the horizontal and vertical detectors', and the diagonals'.
@@ -606,7 +618,12 @@ def fit_main(data, write, model="paper", ground="edges"):
                 Nc = group_counts[near]
             if Nc is None:
                 raise SystemExit(f"no calibration frames in contrast class {c} (edges {edges})")
-            P, tot, P_all_c = class_tables(Nc)
+            try:
+                P, tot, P_all_c = class_tables(Nc)
+            except RuntimeError as exc:  # (table_from_counts: a ψ node without a filled cell)
+                raise SystemExit(f"axes {axes}, contrast class {c}: {exc}: {frames[c]} frames are too few "
+                                 f"to fit a table (the committed ones took {COMMITTED_FLIGHTS[model]} "
+                                 "flights: collect more)") from None
             P_all.append(P_all_c)
             filled = (tot >= MIN_CELL_WEIGHT).mean(axis=(2, 3))
             for k, row in enumerate(filled):
@@ -1209,6 +1226,11 @@ def main(argv=None):
         for path in a.data:
             if problem := stored_flights_problem(path, scored=a.cmd == "margin"):
                 ap.error(f"data {path}: {problem}")
+            if a.cmd != "margin":  # (margin reads each file's own model)
+                with np.load(path) as stored:
+                    flown = str(stored["model"]) if "model" in stored.files else "paper"
+                if flown != a.model:
+                    ap.error(f"data {path}: flights of the {flown} model, not --model {a.model}")
     if a.cmd in ("collect", "evaluate"):
         try:  # (EngineParams' own range, named by the option: a ValueError traceback before)
             EngineParams(evidence_row_step=a.evidence_row_step)
@@ -1247,7 +1269,11 @@ def main(argv=None):
     elif a.cmd == "fit":
         fit_main(a.data, a.write, a.model, a.ground)
     elif a.cmd == "misfit":
-        write_misfit(a.data, a.model, ground=a.ground)
+        table = calibration_path(a.model, a.ground, has_diagonal(a.data), stored_threshold_mode(a.data, a.model))
+        if not table.is_file():
+            ap.error(f"misfit --model {a.model} --ground {a.ground}: no table {table.name} to add the "
+                     f"baseline to (fit --write --model {a.model} --ground {a.ground} makes it)")
+        write_misfit(a.data, a.model, path=table, ground=a.ground)
     elif a.cmd == "margin":
         try:
             margins = [float(x) for x in a.margins.split(",")]
