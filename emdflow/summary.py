@@ -240,7 +240,7 @@ import numpy as np
 
 from .field import FlowField
 from .params import GRADIENT_CLASS_STEPS, HISTOGRAM_BINS, ORIENTATION_BINS, EngineParams, _is_real, _is_whole
-from .reference import STAT_CONTRAST
+from .reference import STAT_CONTRAST, STAT_FIRST_CHANGED
 
 __all__ = ["FlowSummary", "summarize", "SummaryOptions", "calibration_for", "prepare"]
 
@@ -1203,6 +1203,22 @@ def _looks_static(field: FlowField, opts: "SummaryOptions") -> bool:
     return changed[params.channels.index((coarse_scale, 1))] < opts.static_noise_ratio * fine
 
 
+def _check_stats(field: FlowField) -> None:
+    """ValueError unless the field's ``stats`` are the engine's: one count per ``STAT_*``
+    index and channel, none negative, NaN or infinite (a hand-made float array with a NaN
+    textured count read as a fully textured frame: NaN fails every comparison)."""
+    stats = field.stats
+    need = STAT_FIRST_CHANGED + len(field.params.channels)
+    if not isinstance(stats, np.ndarray) or stats.shape != (need,) or stats.dtype.kind not in "iuf":
+        shape = getattr(stats, "shape", None)
+        raise ValueError(f"summarize(): the field's stats are {type(stats).__name__} of shape {shape}, "
+                         f"its parameters need ({need},) counts")
+    if stats.dtype.kind == "f" and not np.isfinite(stats).all():
+        raise ValueError("summarize(): the field's stats hold a NaN or infinite count")
+    if (least := stats.min()) < 0:
+        raise ValueError(f"summarize(): the field's stats hold a negative count ({least})")
+
+
 def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> FlowSummary:
     """Global image flow of a :class:`FlowField` with a quality that says how far to trust it.
 
@@ -1227,7 +1243,8 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
         If the field has no summary evidence (``FlowEstimator(..., summary_evidence=False)``),
         or a hand-made field's histogram is not of the shape its parameters give
         ``(evidence_axes, 2 · channels, bins)``, bins being 64 orientations or 256 with the
-        gradient-strength classes.
+        gradient-strength classes, or its histogram or ``stats`` (one count per
+        ``STAT_*`` index and channel) hold a negative, NaN or infinite count.
 
     Notes
     -----
@@ -1259,6 +1276,7 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
         raise ValueError(f"summarize(): the field's histogram has shape {shape}, its "
                          f"parameters need ({field.params.evidence_axes}, {2 * len(field.params.channels)}, "
                          f"{field.params.histogram_bins}) (axis, code, bin)")
+    _check_stats(field)
     if not field.ready or field.exposure_step:
         return _BLIND  # no history yet, or a global brightness step is in the templates
     textured = field.textured_fraction

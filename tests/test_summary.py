@@ -430,6 +430,23 @@ def test_negative_or_non_finite_counts_are_refused():
             summarize(_field(bad))
 
 
+def test_stats_that_are_not_counts_are_refused():
+    """A hand-made float stats array with a NaN textured count read as a fully textured
+    frame (NaN fails the texture test, and min(1, NaN) is 1): the field's stats must be
+    finite, non-negative counts, one per STAT_* index and channel."""
+    hist = model_histogram((2.5, -1.4), seed=2)
+    good = _stats().astype(np.float64)
+    assert summarize(_field(hist, stats=good)).quality > 0
+    for value, problem in ((np.nan, "NaN or infinite"), (np.inf, "NaN or infinite"), (-3.0, r"negative count \(-3.0\)")):
+        bad = good.copy()
+        bad[STAT_TEXTURED] = value
+        with pytest.raises(ValueError, match=f"stats hold a {problem}"):
+            summarize(_field(hist, stats=bad))
+    for bad in (good[:-1], good.reshape(1, -1), list(good)):
+        with pytest.raises(ValueError, match=rf"stats are .* its parameters need \({len(good)},\) counts"):
+            summarize(_field(hist, stats=bad))
+
+
 def test_real_static_scene():
     est = emdflow.FlowEstimator(W, H, backend="opencl")
     flight = CameraFlight("brick", width=W, height=H, flow=(0.0, 0.0), noise_sigma=2.0, seed=2)
