@@ -232,6 +232,7 @@ EUVIP 2010; ``docs/spec/template-model.md`` §6 (facts the summary is built on).
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import math
 from pathlib import Path
@@ -745,7 +746,13 @@ class _LikelihoodModel:
         return max(0.0, deviance - float(base))
 
 
-_MODEL_CACHE: dict = {}
+#: The likelihood models built so far, most recently used last (see :func:`_model_for`).
+_MODEL_CACHE: "collections.OrderedDict" = collections.OrderedDict()
+#: Models :func:`_model_for` keeps: an extended model is ~180 MB and takes ~1 s to build,
+#: and its key holds two float options (``max_axis_angle``, ``outlier_probability``), so a
+#: sweep over them kept every one (RSS 103 -> 885 MB over four values); one estimator needs
+#: two (its edge and line tables), a process with both models four.
+MODEL_CACHE_SIZE = 4
 _CALIBRATION: dict = {}
 
 
@@ -814,6 +821,7 @@ def _model_for(params: EngineParams, opts: SummaryOptions, ground: str = "edges"
     key = (params.channels, params.diagonal_evidence, params.threshold_mode, opts.max_axis_angle,
            opts.outlier_probability, ground)
     if key in _MODEL_CACHE:
+        _MODEL_CACHE.move_to_end(key)
         return _MODEL_CACHE[key]
     path = calibration_for(params, ground)
     model = None
@@ -848,6 +856,8 @@ def _model_for(params: EngineParams, opts: SummaryOptions, ground: str = "edges"
         model = (edges, [(build(table, p, pd) if by_class else None, build(bare, f, fd))
                          for p, pd, f, fd in zip(per_class, per_class_d, folded, folded_d)])
     _MODEL_CACHE[key] = model
+    while len(_MODEL_CACHE) > MODEL_CACHE_SIZE:
+        _MODEL_CACHE.popitem(last=False)
     return model
 
 
@@ -1188,19 +1198,30 @@ def _looks_static(field: FlowField, opts: "SummaryOptions") -> bool:
     frame) the ratio test read most frames of moving brick and gravel flights as static.
     """
     params = field.params
+    scales = params.scales  # (sorted by EngineParams)
+    if not _has_receptors(field.shape, scales[0]):
+        # no receptor of the finest scale fits the frame, so none ever changes: that says
+        # nothing about the scene (a 64x4 frame with scales (5,) read static, flow 0 at
+        # quality 191, under ground moving 3 px/frame)
+        return False
     changed = field.changed_fraction
-    fine = changed[params.channels.index((params.scales[0], 1))]
+    fine = changed[params.channels.index((scales[0], 1))]
     if fine <= opts.static_changed:
         return True
     if params.threshold_mode == "fixed":  # (the local threshold's tiles have the same floor)
         return False
-    scales = params.scales  # (sorted by EngineParams)
     coarse_scale = next((k for k in scales if k >= STATIC_SCALE), scales[-1])
-    if coarse_scale == scales[0] or min(field.shape) < coarse_scale:
+    if coarse_scale == scales[0] or not _has_receptors(field.shape, coarse_scale):
         # (a frame too small for the coarse receptors has none that change: a 64x4 flight
         # moving 2 px/frame read static, flow 0 at quality 191)
         return False
     return changed[params.channels.index((coarse_scale, 1))] < opts.static_noise_ratio * fine
+
+
+def _has_receptors(shape: tuple[int, int], k: int) -> bool:
+    """Whether a frame of ``shape`` holds any receptor of the (odd) scale ``k``: a k×k
+    block wholly inside it (``reference.box_sums``)."""
+    return min(shape) >= k
 
 
 def _check_stats(field: FlowField) -> None:

@@ -397,19 +397,28 @@ def test_paper_model_at_its_floor_is_not_read_static():
     assert checked >= 20
 
 
-@pytest.mark.parametrize("size", [(64, 4), (4, 64)])
-def test_a_frame_too_small_for_the_coarse_receptors_is_not_read_static(size):
+@pytest.mark.parametrize("size, options", [
+    ((64, 4), MODELS["extended"]), ((4, 64), MODELS["extended"]),
+    # no receptor of the finest scale at all (its changed share is always 0: read static
+    # at quality 191 before), with the fixed threshold and the adaptive one
+    ((64, 4), {"scales": (5,)}), ((6, 40), {"scales": (7,)}),
+    ((64, 4), {"scales": (5, 7), "threshold_mode": "adaptive"}),
+])
+def test_a_frame_too_small_for_the_receptors_is_not_read_static(size, options):
     """The noise test compares the scale-1 receptors' changes with the scale-5 ones'; a
     frame less than 5 px high or wide has no scale-5 receptor, whose share of changes is
     then always 0: a ground moving 2 px/frame under a 64x4 view read static, flow 0 at
-    quality 191. It is motion the detector cannot follow: quality 0."""
+    quality 191. The same without receptors of the finest scale. It is motion the
+    detector cannot follow: quality 0."""
     width, height = size
     rng = np.random.default_rng(2)
     ground = (rng.random((height + 60, width + 60)) * 255).astype(np.uint8)
-    est = emdflow.FlowEstimator(width, height, backend="numpy", **MODELS["extended"])
+    est = emdflow.FlowEstimator(width, height, backend="numpy", **options)
     for t in range(16):  # the ground moves (-2, -1) px/frame
         field = est.update(np.ascontiguousarray(ground[20 + t:20 + t + height, 20 + 2 * t:20 + 2 * t + width]))
-    assert field.ready and field.changed_fraction[0] > SummaryOptions().static_changed
+    assert field.ready
+    if min(size) >= field.params.scales[0]:
+        assert field.changed_fraction[0] > SummaryOptions().static_changed
     s = summarize(field)
     assert not s.static and s.quality == 0, s
 
@@ -578,6 +587,27 @@ def test_one_likelihood_model_serves_every_threshold_and_sampling():
         assert summarize(field).quality > 0
         sizes.append((len(summary._MODEL_CACHE), len(summary._CONSTRAINTS)))
     assert sizes[0] in ((1, 1), (2, 1)) and sizes == sizes[:1] * 3  # (the edge table, maybe "no line table")
+
+
+def test_the_likelihood_models_kept_are_bounded():
+    """The model's key holds two float options: a sweep over outlier_probability kept a
+    model (~180 MB for the extended one) per value, for ever. The cache keeps the most
+    recently used MODEL_CACHE_SIZE; a model in use is not built again."""
+    import emdflow.summary as summary
+
+    summary._MODEL_CACHE.clear()
+    hist = model_histogram((2.5, -1.4), seed=2)
+    field = _field(hist)
+    first = SummaryOptions(outlier_probability=0.01)
+    expected = summarize(field, options=first)
+    kept = summary._model_for(field.params, first)
+    for p in (0.011, 0.012, 0.013, 0.014, 0.015, 0.016):
+        summarize(field, options=SummaryOptions(outlier_probability=p))
+        summarize(field, options=first)  # (in use: stays, the same object)
+        assert summary._model_for(field.params, first) is kept
+        assert len(summary._MODEL_CACHE) <= summary.MODEL_CACHE_SIZE
+    assert summarize(field, options=first) == expected
+    assert not any(key[4] == 0.011 for key in summary._MODEL_CACHE)  # (the oldest went)
 
 
 def test_the_quality_weights_rank_the_error_better_than_the_former_ones():
