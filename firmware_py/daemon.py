@@ -68,6 +68,11 @@ _STEADY_S = 5.0
 # (12-16 % after a drop, ~25 % on two frames after a 0.2 s stall), but 12 blank frames are
 # 200 ms at 60 fps: EKF3 and INAV stop using flow after that.
 _UNEVEN_FRAMES_MAX = 6
+# An error of the engine, the summary or the cues on a frame (an OpenCL runtime error, a
+# driver fault) skips that frame and resets the estimator: the link sends quality 0 while
+# blind, as for a bad frame. Failing on every frame for this long, it is not transient:
+# the daemon exits 1 and systemd restarts it, which builds the engine afresh.
+_ENGINE_FAILURE_EXIT_S = 3.0
 
 
 def choose_threading(setting: str, *, live: bool) -> str:
@@ -95,7 +100,7 @@ class Stats:
     """
 
     COUNTERS = ("frames_in", "processed", "skipped", "dropped", "bad_frames", "resets",
-                "reopens", "blind_periods", "uneven")
+                "reopens", "blind_periods", "uneven", "engine_errors")
     STAGES = ("capture", "wait", "engine", "summary", "link")
 
     def __init__(self):
@@ -579,6 +584,8 @@ class Daemon:
         self._last_frame_host_s = time.monotonic()
         self._blind_logged = False
         self._last_bad_log = -math.inf
+        #: monotonic time of the first of the engine errors on consecutive frames, or None
+        self._failing_since: float | None = None
         self._last_status_s = time.monotonic()
 
     # -- defaults ---------------------------------------------------------------------
@@ -873,6 +880,34 @@ class Daemon:
             self._last_bad_log = now
             log.error("%s: frame skipped (%d bad frames so far)", what, self.stats.bad_frames)
 
+    def _engine_error(self, frame: Frame, stage: str, exc: Exception, now_s: float) -> None:
+        """``stage`` (engine or summary) failed on ``frame``: skip it and reset the estimator
+        (its state may be half-written), so the link reports quality 0 while blind and the
+        flow comes back with the next frames; failing for :data:`_ENGINE_FAILURE_EXIT_S`
+        on every frame, raise (the daemon exits 1 for systemd to restart it)."""
+        self.stats.engine_errors += 1
+        first = self._failing_since is None
+        if first:
+            self._failing_since = now_s
+        elif now_s - self._failing_since > _ENGINE_FAILURE_EXIT_S:
+            raise RuntimeError(f"the {stage} has failed on every frame for {now_s - self._failing_since:.1f} s "
+                               f"({self.stats.engine_errors} errors), the last on frame {frame.index}: "
+                               f"{type(exc).__name__}: {exc}; exiting for a restart") from exc
+        now = time.monotonic()
+        if first or now - self._last_bad_log >= _BAD_FRAME_LOG_S:
+            self._last_bad_log = now
+            # (the traceback with the first error of a run of them: it says where)
+            log.error("%s failed on frame %d (%s: %s): frame skipped, estimator reset (%d engine errors "
+                      "so far)", stage, frame.index, type(exc).__name__, exc, self.stats.engine_errors,
+                      exc_info=exc if first else None)
+        try:
+            self.estimator.reset()
+        except Exception as reset_exc:  # noqa: BLE001 - the next frame's update says more
+            log.debug("estimator reset after the error failed too: %s", reset_exc)
+        self.stats.resets += 1
+        self._prev = None  # (the next frame starts the history again)
+        self._last_frame_host_s = now_s  # (frames arrive: the camera is not blind)
+
     def _process(self, frame: Frame, now_s: float) -> None:
         t0 = host_us()
         self.stats.stage("wait", max(0, t0 - frame.capture_host_us))
@@ -901,21 +936,30 @@ class Daemon:
         if self._blind_logged:
             log.info("source delivering again")
             self._blind_logged = False
+        stage = "engine"
         try:
-            field = self.estimator.update(image)
-        except ValueError as exc:
-            self._bad_frame(f"engine rejected frame {frame.index}: {exc}")
+            try:
+                field = self.estimator.update(image)
+            except ValueError as exc:
+                self._bad_frame(f"engine rejected frame {frame.index}: {exc}")
+                return
+            t1 = host_us()
+            stage = "summary"
+            summary = _summarize(field)
+            # the looming cues go out per frame only as extra values; the status line
+            # computes them from the last field when it is due
+            cues = looming_cues(field) if self._send_cues else None
+        except Exception as exc:  # noqa: BLE001 - the vehicle keeps its link (see _engine_error)
+            self._engine_error(frame, stage, exc, now_s)
             return
-        t1 = host_us()
-        summary = _summarize(field)
-        # the looming cues go out per frame only as extra values; the status line
-        # computes them from the last field when it is due
-        cues = looming_cues(field) if self._send_cues else None
+        self._failing_since = None
         t2 = host_us()
         extras = ()
-        if cues is not None and not cues.detections:
-            # no cue (history filling, a brightness step, thin evidence): "unknown", as the
-            # gyro fields say it, not a measured 0 (no expansion) and -1 (not approaching)
+        if cues is not None and (not cues.detections or uneven):
+            # no cue (history filling, a brightness step, thin evidence; or the detector's
+            # output spans uneven steps, which is not the motion, as for the flow below):
+            # "unknown", as the gyro fields say it, not a measured 0 (no expansion) and -1
+            # (not approaching)
             extras = tuple((name, math.nan) for name in ("expansion", "ttc_s", "balanceLR", "balanceTB"))
         elif cues is not None:
             frame_s = self._frame_interval_s()
@@ -1036,14 +1080,16 @@ class Daemon:
             t = self.stats.totals()
             return (f"total: in {t['frames_in']} processed {t['processed']} skipped {t['skipped']} "
                     f"dropped {t['dropped']} bad {t['bad_frames']} resets {t['resets']} "
-                    f"reopens {t['reopens']} blind {t['blind_periods']} uneven {t['uneven']} | "
+                    f"reopens {t['reopens']} blind {t['blind_periods']} uneven {t['uneven']} "
+                    f"engine errors {t['engine_errors']} | "
                     f"link {_link_stats(st, final=True)} | "
                     f"latency capture->serial p50 {lat50 / 1000:.2f} ms p99 {lat99 / 1000:.2f} ms "
                     f"(n={len(self.latencies_us)})")
         rate = iv["processed"] / period_s if period_s else 0.0
         return (f"{rate:.1f} fps processed (in {iv['frames_in']} proc {iv['processed']} "
                 f"skip {iv['skipped']} drop {iv['dropped']} bad {iv['bad_frames']}"
-                f"{f' uneven {u}' if (u := iv['uneven']) else ''} k={self.subset.k}) | "
+                f"{f' uneven {u}' if (u := iv['uneven']) else ''}"
+                f"{f' engine errors {e}' if (e := iv['engine_errors']) else ''} k={self.subset.k}) | "
                 f"ms capture {iv['capture_ms']:.2f} wait {iv['wait_ms']:.2f} engine {iv['engine_ms']:.2f} "
                 f"(max {iv['engine_max_ms']:.1f}) summary {iv['summary_ms']:.2f} link {iv['link_ms']:.2f} | "
                 f"link {_link_stats(st)} | latency p50 {lat50 / 1000:.2f} ms p99 {lat99 / 1000:.2f} ms | {flow}")
@@ -1066,7 +1112,8 @@ class Daemon:
 _LINK_COUNTERS = (("stale_messages", "stale"), ("open_failures", "open failures"),
                   ("write_errors", "write errors"), ("read_errors", "read errors"),
                   ("integration_restarts", "restarts"), ("bytes_written", "bytes out"),
-                  ("rx_bytes", "bytes in"), ("rx_garbage_bytes", "garbage in"))
+                  ("rx_bytes", "bytes in"), ("rx_garbage_bytes", "garbage in"),
+                  ("internal_errors", "internal errors"))
 
 
 def _link_stats(st, *, final: bool = False) -> str:

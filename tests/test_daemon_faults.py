@@ -266,6 +266,102 @@ def test_a_hung_driver_call_ends_the_daemon_for_systemd_to_restart(tmp_path, cap
     assert daemon.stats.processed < 300
 
 
+class _FailingEstimator:
+    """The daemon's own estimator, whose update raises ``error`` on the calls in ``fail_on``
+    (1-based) and on every call from ``fail_from`` on: an OpenCL runtime error, a driver fault."""
+
+    def __init__(self, inner, fail_on=(), fail_from=None,
+                 error=RuntimeError("clEnqueueNDRangeKernel failed: OUT_OF_RESOURCES")):
+        self.inner, self.fail_on, self.fail_from, self.error = inner, set(fail_on), fail_from, error
+        self.calls = self.resets = 0
+
+    def update(self, frame):
+        self.calls += 1
+        if self.calls in self.fail_on or (self.fail_from is not None and self.calls >= self.fail_from):
+            raise self.error
+        return self.inner.update(frame)
+
+    def reset(self):
+        self.resets += 1
+        self.inner.reset()
+
+    def __getattr__(self, name):  # params, device, ...
+        return getattr(self.inner, name)
+
+
+def _failing_factory(made, **failing):
+    from firmware_py.daemon import Daemon
+
+    def factory(width, height):
+        made.append(_FailingEstimator(Daemon(Config())._default_estimator(width, height), **failing))
+        return made[-1]
+    return factory
+
+
+def _engine_config(*settings):
+    config = Config()
+    for section, key, value in (("source", "uri", "synthetic:u=2,v=1"), ("source", "width", 96),
+                                ("source", "height", 72), ("engine", "backend", engine_backend()),
+                                ("daemon", "threading", "single"), *settings):
+        config.set(section, key, value)
+    return config
+
+
+@pytest.mark.parametrize("stage", ["engine", "summary"])
+def test_an_engine_error_skips_the_frame_and_the_flow_comes_back(tmp_path, caplog, monkeypatch, stage):
+    """An exception from the engine (a transient OpenCL error) or the summary ended the
+    daemon (exit 1: no heartbeat or flow until systemd restarted it, ~2 s and the model's
+    history). Now that frame is skipped with one line (the traceback with it), the estimator
+    is reset, the link reports quality 0 meanwhile, and good flow comes back."""
+    import firmware_py.daemon as daemon_module
+
+    caplog.set_level(logging.INFO, logger="emdflowd")
+    made = []
+    factory = _failing_factory(made, fail_on=(30,) if stage == "engine" else ())
+    if stage == "summary":
+        calls = []
+
+        def summarize_once_failing(field):
+            calls.append(field)
+            if len(calls) == 30:
+                raise FloatingPointError("overflow in the likelihood search")
+            return daemon_module.emdflow.summarize(field)
+        monkeypatch.setattr(daemon_module, "_summarize", summarize_once_failing)
+    code, daemon, data = run_daemon(_engine_config(("link", "heartbeat_rate_hz", 20.0)), frames=60,
+                                    estimator_factory=factory)
+    assert code == 0 and daemon.stats.processed == 60
+    assert daemon.stats.engine_errors == 1 and made[0].resets >= 1
+    error = ("RuntimeError: clEnqueueNDRangeKernel failed: OUT_OF_RESOURCES" if stage == "engine"
+             else "FloatingPointError: overflow in the likelihood search")
+    assert re.search(rf"{stage} failed on frame \d+ \({re.escape(error)}\): frame skipped, estimator reset "
+                     r"\(1 engine errors so far\)", caplog.text)
+    assert sum(r.exc_info is not None for r in caplog.records) == 1  # (the traceback, once)
+    assert "engine errors 1 |" in caplog.text  # (the total: line, which names the link's
+    assert "internal errors 0 |" in caplog.text  # own errors too: they were counted, never shown)
+    qualities = [m.quality for m in parse_mavlink(data) if m.get_type() == "OPTICAL_FLOW"]
+    good = [i for i, q in enumerate(qualities) if q > 0]
+    assert good and any(q == 0 for q in qualities[good[0]:])  # quality 0 after the error ...
+    assert qualities[-1] > 0                                   # ... then good flow again
+
+
+def test_an_engine_that_keeps_failing_ends_the_daemon_for_systemd_to_restart(tmp_path, caplog, monkeypatch):
+    """Failing on every frame is not transient: after _ENGINE_FAILURE_EXIT_S the daemon
+    stops with an error naming it (emdflowd exits 1: systemd restarts the service, which
+    builds the engine afresh)."""
+    import firmware_py.daemon as daemon_module
+
+    monkeypatch.setattr(daemon_module, "_ENGINE_FAILURE_EXIT_S", 0.3)
+    caplog.set_level(logging.INFO, logger="emdflowd")
+    made = []
+    started = time.monotonic()
+    with pytest.raises(RuntimeError, match=r"the engine has failed on every frame for 0\.[3-9] s \(\d+ errors\), "
+                                           r"the last on frame \d+: RuntimeError: clEnqueueNDRangeKernel"):
+        run_daemon(_engine_config(("source", "fps", 100.0), ("source", "realtime", True)), frames=1000,
+                   estimator_factory=_failing_factory(made, fail_from=20))
+    assert time.monotonic() - started < 5.0
+    assert made[0].calls > 20 and made[0].resets > 1
+
+
 def test_frame_of_wrong_size_is_skipped_with_a_clear_line(tmp_path, caplog):
     def factory():
         return FaultySource(make_source("synthetic:u=2,v=1", width=96, height=72, fps=100), bad_at=10)

@@ -263,6 +263,36 @@ def test_a_dropped_frame_sends_the_frames_it_unevens_with_quality_0(tmp_path, dr
     assert zeros == list(range(30, 30 + uneven)), quality  # the frames whose templates span the drop
 
 
+def test_the_extra_values_of_uneven_frames_are_unknown(monkeypatch):
+    """The frames whose templates span a dropped frame go out with quality 0: what the
+    detector reports then is not the motion. Their cues (expansion, time to contact,
+    balances) came from the same detections and went out as measured values; now as NaN,
+    "unknown", like the flow's quality."""
+    import firmware_py.daemon as daemon_module
+
+    sent = []
+    real = daemon_module.FlowSample
+
+    def recorded(**fields):
+        sent.append(real(**fields))
+        return sent[-1]
+
+    monkeypatch.setattr(daemon_module, "FlowSample", recorded)
+    config = _config("synthetic:u=2,v=1", autopilot="ardupilot", model="paper",
+                     settings={("source", "width"): 96, ("source", "height"): 72,
+                               ("link", "extra_values"): True, ("link", "min_quality"): 0})
+    code, daemon, _ = run_daemon(config, frames=60, source_factory=lambda: _DroppingSource(
+        make_source("synthetic:u=2,v=1", width=96, height=72, fps=100), drop=(30,), renumber=False, every=1,
+        jitter_us=0))
+    assert code == 0 and daemon.stats.uneven == 3
+    ready = sent[5:]  # (after the paper model's history)
+    uneven = [s for s in ready if s.quality == 0]
+    assert len(uneven) == 3
+    assert all(math.isnan(value) for s in uneven for _, value in s.extras), [s.extras for s in uneven]
+    measured = [s for s in ready if s.quality > 0]
+    assert measured and all(math.isfinite(dict(s.extras)["expansion"]) for s in measured)
+
+
 @pytest.mark.parametrize("autopilot, model, setting, floor", [
     ("ardupilot", "paper", None, 128),    # the paper model's default for ArduPilot
     ("both", "extended", None, 64),       # the extended model's (both: ArduPilot reads OPTICAL_FLOW)
