@@ -58,8 +58,9 @@ class FlowEstimator:
     Parameters
     ----------
     width, height : int
-        Frame size in pixels, at least 3 wide and 4 high, at most 2^24 pixels. Every frame
-        given to :meth:`update` must have this size.
+        Frame size in pixels, at least 3 wide and 4 high, at most 2^24 pixels and 32 768
+        (``MAX_WIDTH``) wide (:class:`FrameSizeError` otherwise). Every frame given to
+        :meth:`update` must have this size.
     backend : {'opencl', 'numpy'}
         ``'opencl'`` (default) runs the kernels in ``kernels/`` through pyopencl;
         ``'numpy'`` runs the reference implementation (exactly the same results, far
@@ -100,9 +101,9 @@ class FlowEstimator:
         direction for more engine time (see :class:`emdflow.EngineParams`).
     summary_evidence : bool, optional
         Compute the evidence of :func:`emdflow.summarize` and of the looming cues
-        (default True). False: the dense field and the counters only, 16–20 % (with the
-        diagonal evidence 24–29 %) less engine
-        time at 640×480; those functions then refuse the field (ValueError).
+        (default True). False: the dense field and the counters only, 20–27 % less engine
+        time at 640×480 and 42–44 % at 320×240 (the extended and the paper's model, the
+        README's "Speed" table); those functions then refuse the field (ValueError).
     diagonal_evidence : bool, optional
         Also bin the detections of velocity detectors along the two diagonals into the
         summary's evidence (default True; see :class:`emdflow.EngineParams`). The dense

@@ -218,7 +218,7 @@ class EngineParams:
         Compute the summary's evidence next to the detector (default True): the
         orientation and position histograms that :func:`emdflow.summarize` and
         :func:`emdflow.cues.looming_cues` read. False gives the dense field (``u``, ``v``)
-        and the frame's counters only, about 30 % faster at 640×480 (README, "Speed"), for a
+        and the frame's counters only, in 20–27 % less time at 640×480 (README, "Speed"), for a
         caller that never summarises (a researcher's dense flow); those two functions then
         refuse the field, and so do the command-line tools, which summarise every frame.
         The detections do not change.

@@ -76,8 +76,9 @@ class EngineConfig:
     model: str = _opt("extended", choices=tuple(MODELS), doc="detector model")
     threshold: float = _opt(5.0, minimum=0.5, maximum=100.0, doc="ternary threshold, gray levels")
     # the extended model's summary reads its evidence per gradient-strength class (more
-    # accurate speed, direction and slow speeds; the summary costs ~0.8-1.2 ms instead of
-    # ~0.6 ms per frame on a 2-core x86): false trades that accuracy for the time on slow boards
+    # accurate speed, direction and slow speeds; the summary costs ~2.2-2.4 ms instead of
+    # ~1.3-1.5 ms per 320x240 frame in the demo on a 2-core x86): false trades that accuracy
+    # for the time on slow boards
     gradient_classes: bool = _opt(True, doc="summary evidence per gradient-strength class")
     # 0: about 60 sampled rows per frame. 1 (every row) at 320x240 takes the summary's
     # direction error from ~1.9 to ~1.65 degrees for ~0.35 ms more engine time per frame
