@@ -102,8 +102,9 @@ class FlowEstimator:
     summary_evidence : bool, optional
         Compute the evidence of :func:`emdflow.summarize` and of the looming cues
         (default True). False: the dense field and the counters only, 20–27 % less engine
-        time at 640×480 and 42–44 % at 320×240 (the extended and the paper's model, the
-        README's "Speed" table); those functions then refuse the field (ValueError).
+        time at 640×480 and 42–44 % at 320×240 (the extended and the paper's model, threads
+        pinned, the README's "Speed" table; more with PoCL's own scheduling); those
+        functions then refuse the field (ValueError).
     diagonal_evidence : bool, optional
         Also bin the detections of velocity detectors along the two diagonals into the
         summary's evidence (default True; see :class:`emdflow.EngineParams`). The dense

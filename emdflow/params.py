@@ -211,16 +211,17 @@ class EngineParams:
         time grows with it: at 320×240, every row (1) instead of every 4th takes the paper
         model's median direction error on random flights from 2.37° to 2.06° and the
         extended model's from 1.80° to 1.65° with its edge table alone (1.92° to 1.73°
-        with its line-ground table too), for ~0.35 ms more per frame (README, "Evidence
+        with its line-ground table too), for ~0.44 ms more per frame (README, "Evidence
         density"). The detections themselves (``u``, ``v``) do not change, nor do the
         calibration tables, which do not depend on the sampling.
     summary_evidence : bool
         Compute the summary's evidence next to the detector (default True): the
         orientation and position histograms that :func:`emdflow.summarize` and
         :func:`emdflow.cues.looming_cues` read. False gives the dense field (``u``, ``v``)
-        and the frame's counters only, in 20–27 % less time at 640×480 (README, "Speed"), for a
-        caller that never summarises (a researcher's dense flow); those two functions then
-        refuse the field, and so do the command-line tools, which summarise every frame.
+        and the frame's counters only, in 20–27 % less time at 640×480 (threads pinned;
+        README, "Speed"), for a caller that never summarises (a researcher's dense flow);
+        those two functions then refuse the field, and so do the command-line tools, which
+        summarise every frame.
         The detections do not change.
     diagonal_evidence : bool
         Also run velocity detectors along the two diagonals on the evidence rows and bin

@@ -210,10 +210,12 @@ mortar lines read 7–13 px/frame 0.66–0.80× (with the line-ground table 5–
 0.92–1.01×. Quality bands (random set): 192–255 → 5.5 % (90th percentile
 11.2 %), 128–191 → 6.8 %, 64–127 → 11.8 %, 1–63 → 21 %; rank correlation of quality with
 the error 0.41–0.45 across the five sets (without the misfit term 6.1 % (14.8 %), 6.7 %,
-15 %, 31 % and 0.32 on the random set). Cost with the edge table alone ≈ 0.55–0.6 ms per
-call back to back at 640×480 (plus ~0.025 ms for the deviance) and 0.8–1.2 ms right after
-each frame's update, when the engine has evicted the table from the caches (``emdflow
-bench --stages --model extended``); the line-ground table's second fit, which reuses the
+15 %, 31 % and 0.32 on the random set). Cost on the Intel Xeon host of the earlier
+sessions, with the edge table alone ≈ 0.55–0.6 ms per call back to back at 640×480 (plus
+~0.025 ms for the deviance) and 0.8–1.2 ms right after each frame's update, when the
+engine has evicted the table from the caches (``emdflow bench --stages --model
+extended``; on the AMD EPYC host of the README's "Speed", with both tables, 2.3 ms at
+640×480 and 2.2–2.4 ms in ``emdflowd --demo`` at 320×240); the line-ground table's second fit, which reuses the
 first one's gathering of the counts, makes it 1.6–1.7× (0.85–0.90 against 0.52 ms back to
 back at 320×240 and 640×480, ``calibrate_summary evaluate --data F --ground auto|edges``;
 1.05 ms after each update, measured on an Intel Xeon host where the figures above were on
@@ -748,10 +750,11 @@ class _LikelihoodModel:
 
 #: The likelihood models built so far, most recently used last (see :func:`_model_for`).
 _MODEL_CACHE: "collections.OrderedDict" = collections.OrderedDict()
-#: Models :func:`_model_for` keeps: an extended model is ~180 MB and takes ~1 s to build,
-#: and its key holds two float options (``max_axis_angle``, ``outlier_probability``), so a
-#: sweep over them kept every one (RSS 103 -> 885 MB over four values); one estimator needs
-#: two (its edge and line tables), a process with both models four.
+#: Models :func:`_model_for` keeps (channel sets without a table, None, are not counted):
+#: an extended model is ~180 MB and takes ~1 s to build, and its key holds two float
+#: options (``max_axis_angle``, ``outlier_probability``), so a sweep over them kept every
+#: one (RSS 103 -> 885 MB over four values); one estimator needs two (its edge and line
+#: tables), a process with both models three (the paper's has no line table).
 MODEL_CACHE_SIZE = 4
 _CALIBRATION: dict = {}
 
@@ -856,7 +859,10 @@ def _model_for(params: EngineParams, opts: SummaryOptions, ground: str = "edges"
         model = (edges, [(build(table, p, pd) if by_class else None, build(bare, f, fd))
                          for p, pd, f, fd in zip(per_class, per_class_d, folded, folded_d)])
     _MODEL_CACHE[key] = model
-    while len(_MODEL_CACHE) > MODEL_CACHE_SIZE:
+    built = [k for k, m in _MODEL_CACHE.items() if m is not None]  # (oldest first)
+    for old in built[:max(0, len(built) - MODEL_CACHE_SIZE)]:
+        del _MODEL_CACHE[old]
+    while len(_MODEL_CACHE) > 16 * MODEL_CACHE_SIZE:  # (the Nones too, in the long run)
         _MODEL_CACHE.popitem(last=False)
     return model
 

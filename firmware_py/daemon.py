@@ -68,11 +68,13 @@ _STEADY_S = 5.0
 # (12-16 % after a drop, ~25 % on two frames after a 0.2 s stall), but 12 blank frames are
 # 200 ms at 60 fps: EKF3 and INAV stop using flow after that.
 _UNEVEN_FRAMES_MAX = 6
-# An error of the engine, the summary or the cues on a frame (an OpenCL runtime error, a
-# driver fault) skips that frame and resets the estimator: the link sends quality 0 while
-# blind, as for a bad frame. Failing on every frame for this long, it is not transient:
+# An error of the engine or the summary on a frame (an OpenCL runtime error, a driver
+# fault) skips that frame and resets the estimator: the link sends quality 0 while blind,
+# as for a bad frame. Errors that keep the flow from coming back (no ready field between
+# them) for this long, at least _ENGINE_FAILURE_EXIT_ERRORS of them, are not transient:
 # the daemon exits 1 and systemd restarts it, which builds the engine afresh.
 _ENGINE_FAILURE_EXIT_S = 3.0
+_ENGINE_FAILURE_EXIT_ERRORS = 10
 
 
 def choose_threading(setting: str, *, live: bool) -> str:
@@ -584,8 +586,11 @@ class Daemon:
         self._last_frame_host_s = time.monotonic()
         self._blind_logged = False
         self._last_bad_log = -math.inf
-        #: monotonic time of the first of the engine errors on consecutive frames, or None
+        #: monotonic time of the first engine error since the last ready field, or None,
+        #: and the errors since then
         self._failing_since: float | None = None
+        self._failures = 0
+        self._last_engine_log = -math.inf
         self._last_status_s = time.monotonic()
 
     # -- defaults ---------------------------------------------------------------------
@@ -883,23 +888,26 @@ class Daemon:
     def _engine_error(self, frame: Frame, stage: str, exc: Exception, now_s: float) -> None:
         """``stage`` (engine or summary) failed on ``frame``: skip it and reset the estimator
         (its state may be half-written), so the link reports quality 0 while blind and the
-        flow comes back with the next frames; failing for :data:`_ENGINE_FAILURE_EXIT_S`
-        on every frame, raise (the daemon exits 1 for systemd to restart it)."""
+        flow comes back once the history has refilled. Errors that keep it from coming back
+        (no ready field between them) for :data:`_ENGINE_FAILURE_EXIT_S`, at least
+        :data:`_ENGINE_FAILURE_EXIT_ERRORS` of them, raise (the daemon exits 1 for systemd
+        to restart it): an error on every few frames keeps the history from refilling."""
         self.stats.engine_errors += 1
-        first = self._failing_since is None
-        if first:
-            self._failing_since = now_s
-        elif now_s - self._failing_since > _ENGINE_FAILURE_EXIT_S:
-            raise RuntimeError(f"the {stage} has failed on every frame for {now_s - self._failing_since:.1f} s "
-                               f"({self.stats.engine_errors} errors), the last on frame {frame.index}: "
-                               f"{type(exc).__name__}: {exc}; exiting for a restart") from exc
+        if self._failing_since is None:
+            self._failing_since, self._failures = now_s, 0
+        self._failures += 1
+        failing_s = now_s - self._failing_since
+        if failing_s > _ENGINE_FAILURE_EXIT_S and self._failures >= _ENGINE_FAILURE_EXIT_ERRORS:
+            raise RuntimeError(f"{self._failures} engine errors in {failing_s:.1f} s without a flow between "
+                               f"them, the last in the {stage} on frame {frame.index}: {type(exc).__name__}: "
+                               f"{exc}; exiting for a restart") from exc
         now = time.monotonic()
-        if first or now - self._last_bad_log >= _BAD_FRAME_LOG_S:
-            self._last_bad_log = now
-            # (the traceback with the first error of a run of them: it says where)
+        if now - self._last_engine_log >= _BAD_FRAME_LOG_S:  # (the first one always)
+            self._last_engine_log = now
+            # (with its traceback: it says where)
             log.error("%s failed on frame %d (%s: %s): frame skipped, estimator reset (%d engine errors "
                       "so far)", stage, frame.index, type(exc).__name__, exc, self.stats.engine_errors,
-                      exc_info=exc if first else None)
+                      exc_info=exc)
         try:
             self.estimator.reset()
         except Exception as reset_exc:  # noqa: BLE001 - the next frame's update says more
@@ -907,6 +915,22 @@ class Daemon:
         self.stats.resets += 1
         self._prev = None  # (the next frame starts the history again)
         self._last_frame_host_s = now_s  # (frames arrive: the camera is not blind)
+
+    def _cues(self, field, frame: Frame):
+        """The frame's looming cues, or None when computing them failed: the flow goes out
+        as computed, its extra values as unknown (NaN), logged as an engine error (at most
+        one line per 5 s; the estimator is not reset, the field is good)."""
+        try:
+            return looming_cues(field)
+        except Exception as exc:  # noqa: BLE001 - the extras are optional, the flow is not
+            self.stats.engine_errors += 1
+            now = time.monotonic()
+            if now - self._last_engine_log >= _BAD_FRAME_LOG_S:
+                self._last_engine_log = now
+                log.error("looming cues failed on frame %d (%s: %s): its extra values go out unknown (%d "
+                          "engine errors so far)", frame.index, type(exc).__name__, exc,
+                          self.stats.engine_errors, exc_info=exc)
+            return None
 
     def _process(self, frame: Frame, now_s: float) -> None:
         t0 = host_us()
@@ -946,16 +970,17 @@ class Daemon:
             t1 = host_us()
             stage = "summary"
             summary = _summarize(field)
-            # the looming cues go out per frame only as extra values; the status line
-            # computes them from the last field when it is due
-            cues = looming_cues(field) if self._send_cues else None
         except Exception as exc:  # noqa: BLE001 - the vehicle keeps its link (see _engine_error)
             self._engine_error(frame, stage, exc, now_s)
             return
-        self._failing_since = None
+        if field.ready:  # (the flow is back: a run of errors has ended)
+            self._failing_since = None
+        # the looming cues go out per frame only as extra values; the status line
+        # computes them from the last field when it is due
+        cues = self._cues(field, frame) if self._send_cues else None
         t2 = host_us()
         extras = ()
-        if cues is not None and (not cues.detections or uneven):
+        if self._send_cues and (cues is None or not cues.detections or uneven):
             # no cue (history filling, a brightness step, thin evidence; or the detector's
             # output spans uneven steps, which is not the motion, as for the flow below):
             # "unknown", as the gyro fields say it, not a measured 0 (no expansion) and -1

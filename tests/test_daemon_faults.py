@@ -4,6 +4,7 @@ signals and systemd notifications — each handled with a clear log line and no 
 from __future__ import annotations
 
 import logging
+import math
 import os
 import re
 import sys
@@ -317,26 +318,29 @@ def test_an_engine_error_skips_the_frame_and_the_flow_comes_back(tmp_path, caplo
 
     caplog.set_level(logging.INFO, logger="emdflowd")
     made = []
-    factory = _failing_factory(made, fail_on=(30,) if stage == "engine" else ())
+    # (two errors, the flow back between them: the second is counted, not logged again
+    # within 5 s)
+    factory = _failing_factory(made, fail_on=(30, 60) if stage == "engine" else ())
     if stage == "summary":
         calls = []
 
-        def summarize_once_failing(field):
+        def summarize_twice_failing(field):
             calls.append(field)
-            if len(calls) == 30:
+            if len(calls) in (30, 60):
                 raise FloatingPointError("overflow in the likelihood search")
             return daemon_module.emdflow.summarize(field)
-        monkeypatch.setattr(daemon_module, "_summarize", summarize_once_failing)
-    code, daemon, data = run_daemon(_engine_config(("link", "heartbeat_rate_hz", 20.0)), frames=60,
+        monkeypatch.setattr(daemon_module, "_summarize", summarize_twice_failing)
+    code, daemon, data = run_daemon(_engine_config(("link", "heartbeat_rate_hz", 20.0)), frames=90,
                                     estimator_factory=factory)
-    assert code == 0 and daemon.stats.processed == 60
-    assert daemon.stats.engine_errors == 1 and made[0].resets >= 1
+    assert code == 0 and daemon.stats.processed == 90
+    assert daemon.stats.engine_errors == 2 and made[0].resets >= 2
     error = ("RuntimeError: clEnqueueNDRangeKernel failed: OUT_OF_RESOURCES" if stage == "engine"
              else "FloatingPointError: overflow in the likelihood search")
     assert re.search(rf"{stage} failed on frame \d+ \({re.escape(error)}\): frame skipped, estimator reset "
                      r"\(1 engine errors so far\)", caplog.text)
     assert sum(r.exc_info is not None for r in caplog.records) == 1  # (the traceback, once)
-    assert "engine errors 1 |" in caplog.text  # (the total: line, which names the link's
+    assert caplog.text.count("frame skipped, estimator reset") == 1
+    assert "engine errors 2 |" in caplog.text  # (the total: line, which names the link's
     assert "internal errors 0 |" in caplog.text  # own errors too: they were counted, never shown)
     qualities = [m.quality for m in parse_mavlink(data) if m.get_type() == "OPTICAL_FLOW"]
     good = [i for i, q in enumerate(qualities) if q > 0]
@@ -344,22 +348,60 @@ def test_an_engine_error_skips_the_frame_and_the_flow_comes_back(tmp_path, caplo
     assert qualities[-1] > 0                                   # ... then good flow again
 
 
-def test_an_engine_that_keeps_failing_ends_the_daemon_for_systemd_to_restart(tmp_path, caplog, monkeypatch):
-    """Failing on every frame is not transient: after _ENGINE_FAILURE_EXIT_S the daemon
-    stops with an error naming it (emdflowd exits 1: systemd restarts the service, which
-    builds the engine afresh)."""
+@pytest.mark.parametrize("failing", [{"fail_from": 20}, {"fail_on": range(20, 1000, 8)}],
+                         ids=["every-frame", "every-8th-frame"])
+def test_an_engine_that_keeps_failing_ends_the_daemon_for_systemd_to_restart(tmp_path, caplog, monkeypatch,
+                                                                             failing):
+    """Errors that keep the flow from coming back are not transient: an error on every
+    frame, or on every 8th (the extended model's history of 12 frames never refills, and
+    each frame between them "succeeded"): after _ENGINE_FAILURE_EXIT_S the daemon stops with
+    an error naming it (emdflowd exits 1: systemd restarts the service, which builds the
+    engine afresh). Logged at most once per 5 s meanwhile."""
     import firmware_py.daemon as daemon_module
 
     monkeypatch.setattr(daemon_module, "_ENGINE_FAILURE_EXIT_S", 0.3)
     caplog.set_level(logging.INFO, logger="emdflowd")
     made = []
     started = time.monotonic()
-    with pytest.raises(RuntimeError, match=r"the engine has failed on every frame for 0\.[3-9] s \(\d+ errors\), "
-                                           r"the last on frame \d+: RuntimeError: clEnqueueNDRangeKernel"):
+    with pytest.raises(RuntimeError, match=r"\d+ engine errors in 0\.[3-9] s without a flow between them, the last "
+                                           r"in the engine on frame \d+: RuntimeError: clEnqueueNDRangeKernel"):
         run_daemon(_engine_config(("source", "fps", 100.0), ("source", "realtime", True)), frames=1000,
-                   estimator_factory=_failing_factory(made, fail_from=20))
+                   estimator_factory=_failing_factory(made, **failing))
     assert time.monotonic() - started < 5.0
-    assert made[0].calls > 20 and made[0].resets > 1
+    assert made[0].calls > 20 and made[0].resets >= 10
+    assert caplog.text.count("frame skipped, estimator reset") == 1
+
+
+def test_a_failing_cue_sends_its_extras_unknown_and_keeps_the_flow(tmp_path, caplog, monkeypatch):
+    """The looming cues are extras: one that raises leaves the frame's flow as computed (no
+    reset, no skipped frame) and sends its extra values as NaN, counted as an engine error."""
+    import firmware_py.daemon as daemon_module
+
+    caplog.set_level(logging.INFO, logger="emdflowd")
+    sent, calls = [], []
+    real_sample, real_cues = daemon_module.FlowSample, daemon_module.looming_cues
+
+    def recorded(**fields):
+        sent.append(real_sample(**fields))
+        return sent[-1]
+
+    def cues_once_failing(field):
+        calls.append(field)
+        if len(calls) == 30:
+            raise ZeroDivisionError("float division by zero")
+        return real_cues(field)
+
+    monkeypatch.setattr(daemon_module, "FlowSample", recorded)
+    monkeypatch.setattr(daemon_module, "looming_cues", cues_once_failing)
+    made = []
+    code, daemon, _ = run_daemon(_engine_config(("link", "extra_values", True)), frames=40,
+                                 estimator_factory=_failing_factory(made))
+    assert code == 0 and daemon.stats.processed == 40 and daemon.stats.engine_errors == 1
+    assert daemon.stats.resets == 0 and len(sent) == 40
+    failed = sent[-11]  # (the frame of the 30th call: the warm-up made none)
+    assert failed.quality > 0 and all(math.isnan(v) for _, v in failed.extras), failed
+    assert all(math.isfinite(dict(s.extras)["expansion"]) for s in sent[-10:])
+    assert "looming cues failed on frame" in caplog.text and "its extra values go out unknown" in caplog.text
 
 
 def test_frame_of_wrong_size_is_skipped_with_a_clear_line(tmp_path, caplog):

@@ -16,16 +16,14 @@ import pytest
 from emdflow.cli import main
 from emdflow.synthetic import CameraFlight
 from emdflow.tools.flo import read_flo
-from emdflow.tools.video_io import quiet_ffmpeg_log
+# The CLI sets FFmpeg's log level before it opens its first file: importing video_io does
+# (quiet_ffmpeg_log). OpenCV reads that level once, at the first file this process opens,
+# and the fixtures below write their videos with cv2 directly, so it is imported here, before
+# any of them runs: a test run that started with the fixtures printed FFmpeg's "[ffv1 ...]"
+# lines where the CLI, run alone, prints none.
+from emdflow.tools.video_io import quiet_ffmpeg_log  # noqa: F401
 
 import emdflow
-
-# The CLI sets FFmpeg's log level before it opens its first file (importing video_io does);
-# OpenCV reads that level once, at the first file this process opens, and the fixtures below
-# write their videos with cv2 directly. Set it as the CLI would, before any of them runs: a
-# test run that started with the fixtures printed FFmpeg's "[ffv1 ...]" lines where the CLI,
-# run alone, prints none.
-quiet_ffmpeg_log()
 
 # Where the emdflow under test lives (the installed package in CI, the source tree otherwise):
 # subprocesses import the same one.

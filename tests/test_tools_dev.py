@@ -152,7 +152,8 @@ def test_calibrate_summary_refuses_bad_options(cs, tmp_path, capsys, argv, optio
     ("hist short", "its 'hist' array has shape (2, 2, 2, 64): expected one (2 or 4 axes, signed channels, "
                    "bins) histogram per frame of its 'flow' (3 frames)"),
     ("3 axes", "its 'hist' array has shape (3, 3, 2, 64)"),
-    ("stats short", "its 'stats' array has shape (2, 9): expected one row per frame of its 'flow' (3 frames)"),
+    ("stats short", "its 'stats' array has shape (2, 8): expected one row per frame of its 'flow' (3 frames)"),
+    ("stats narrow", "its 'stats' rows hold 5 counts: the engine's 8 for the 1 channels of its 'hist'"),
 ])
 @pytest.mark.parametrize("command", ["fit", "misfit", "margin", "evaluate"])
 def test_calibrate_summary_names_a_file_that_holds_no_flights(cs, tmp_path, capsys, command, content, problem):
@@ -170,10 +171,11 @@ def test_calibrate_summary_names_a_file_that_holds_no_flights(cs, tmp_path, caps
     elif content == "no frames":
         np.savez(path, hist=np.zeros((0, 2, 2, 64)), stats=np.zeros((0, 9)), flow=np.zeros((0, 2)),
                  shape=np.array([72, 96]), frame_index=np.array(20))
-    elif content in ("1-D hist", "hist short", "3 axes", "stats short"):
+    elif content in ("1-D hist", "hist short", "3 axes", "stats short", "stats narrow"):
         hist = {"1-D hist": (10,), "hist short": (2, 2, 2, 64), "3 axes": (3, 3, 2, 64)}.get(content, (3, 2, 2, 64))
-        np.savez(path, hist=np.zeros(hist), stats=np.zeros((2 if content == "stats short" else 3, 9)),
-                 flow=np.ones((3, 2)), shape=np.array([72, 96]), frame_index=np.arange(3))
+        stats = {"stats short": (2, 8), "stats narrow": (3, 5)}.get(content, (3, 8))
+        np.savez(path, hist=np.zeros(hist), stats=np.zeros(stats), flow=np.ones((3, 2)), shape=np.array([72, 96]),
+                 frame_index=np.arange(3))
     else:
         path.write_bytes(content)
     argv = [command, "--data", str(path)] if command == "evaluate" else [command, str(path)]
@@ -185,7 +187,7 @@ def test_calibrate_summary_names_collected_flights_it_cannot_summarise_again(cs,
     """collect --out stores no frame size: evaluate --data and margin, which summarise the
     frames again, say so (a KeyError traceback before); fit takes such a file."""
     path = tmp_path / "collected.npz"
-    np.savez(path, hist=np.zeros((3, 2, 2, 64)), stats=np.zeros((3, 9)), flow=np.ones((3, 2)))
+    np.savez(path, hist=np.zeros((3, 2, 2, 64)), stats=np.zeros((3, 8)), flow=np.ones((3, 2)))
     argv = [command, "--data", str(path)] if command == "evaluate" else [command, str(path)]
     err = _refused(cs.main, argv, capsys, f"{path}: no 'shape' or 'frame_index' array in it")
     assert "only evaluate --save stores what summarising again needs" in err
@@ -196,7 +198,7 @@ def test_calibrate_summary_refuses_flights_of_another_model(cs, tmp_path, capsys
     """fit and misfit --model extended on the paper model's flights: one line naming the
     file and both models, before any table is looked for or fitted."""
     path = tmp_path / "paper.npz"
-    np.savez(path, hist=np.zeros((3, 4, 14, 64)), stats=np.zeros((3, 9)), flow=np.ones((3, 2)),
+    np.savez(path, hist=np.zeros((3, 4, 14, 64)), stats=np.zeros((3, 14)), flow=np.ones((3, 2)),
              model=np.array("paper"))
     _refused(cs.main, [command, "--model", "extended", str(path)], capsys,
              f"data {path}: flights of the paper model, not --model extended")
@@ -207,7 +209,7 @@ def test_calibrate_summary_misfit_needs_the_table_it_adds_to(cs, monkeypatch, tm
     line-ground table, which nobody has fitted), one line naming it and the command that
     makes it (a FileNotFoundError traceback before)."""
     path = tmp_path / "paper.npz"
-    np.savez(path, hist=np.zeros((3, 4, 14, 64)), stats=np.zeros((3, 9)), flow=np.ones((3, 2)),
+    np.savez(path, hist=np.zeros((3, 4, 14, 64)), stats=np.zeros((3, 14)), flow=np.ones((3, 2)),
              model=np.array("paper"))
     missing = tmp_path / "summary_calibration_lines_diagonal.npz"
     monkeypatch.setattr(cs, "calibration_path", lambda *args, **kwargs: missing)
@@ -231,7 +233,7 @@ def test_calibrate_summary_fit_names_too_few_flights(monkeypatch, tmp_path):
     assert not table.exists()
     message = str(stop.value.code)
     assert "contrast class 0: no calibration data at ψ node" in message
-    assert "2 frames are too few to fit a table (the committed ones took 9 000 flights" in message
+    assert "2 frames are too few to fit a table (the committed edge table's recipe collects 9 000 flights" in message
 
 
 @pytest.mark.parametrize("argv, option", [

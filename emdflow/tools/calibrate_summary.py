@@ -245,8 +245,8 @@ SCORED_ARRAYS = ("shape", "frame_index")
 
 
 def stored_flights_problem(path, scored: bool = False) -> str | None:
-    """Why ``path`` is not a file of stored flights, or None (reads the archive's directory
-    and the length of its flows). ``scored``: the flights are to be summarised again
+    """Why ``path`` is not a file of stored flights, or None (reads the archive's directory,
+    its flows and the shapes of its histograms and counters). ``scored``: the flights are to be summarised again
     (``evaluate --data``, ``margin``), which needs :data:`SCORED_ARRAYS` too."""
     import zipfile
     import zlib
@@ -273,6 +273,8 @@ def stored_flights_problem(path, scored: bool = False) -> str | None:
                 return "no frames in it (its 'flow' array holds no (u, v) rows)"
         except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:  # (a corrupt member)
             return f"its 'flow' array cannot be read ({exc})"
+    from emdflow.reference import STAT_FIRST_CHANGED
+
     try:  # (from the headers: an extended file's histograms are ~1 GB decompressed)
         hist, stats = _stored_shape(path, "hist"), _stored_shape(path, "stats")
     except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
@@ -282,6 +284,9 @@ def stored_flights_problem(path, scored: bool = False) -> str | None:
                 f"histogram per frame of its 'flow' ({len(flow)} frames)")
     if len(stats) != 2 or stats[0] != len(flow):
         return f"its 'stats' array has shape {stats}: expected one row per frame of its 'flow' ({len(flow)} frames)"
+    if stats[1] != STAT_FIRST_CHANGED + hist[2] // 2:  # (the summary's own check, up front)
+        return (f"its 'stats' rows hold {stats[1]} counts: the engine's {STAT_FIRST_CHANGED + hist[2] // 2} for "
+                f"the {hist[2] // 2} channels of its 'hist'")
     return None
 
 
@@ -622,8 +627,9 @@ def fit_main(data, write, model="paper", ground="edges"):
                 P, tot, P_all_c = class_tables(Nc)
             except RuntimeError as exc:  # (table_from_counts: a ψ node without a filled cell)
                 raise SystemExit(f"axes {axes}, contrast class {c}: {exc}: {frames[c]} frames are too few "
-                                 f"to fit a table (the committed ones took {COMMITTED_FLIGHTS[model]} "
-                                 "flights: collect more)") from None
+                                 f"to fit a table (the committed edge table's recipe collects "
+                                 f"{COMMITTED_FLIGHTS[model]} flights of 4-8 ready frames: collect "
+                                 "more)") from None
             P_all.append(P_all_c)
             filled = (tot >= MIN_CELL_WEIGHT).mean(axis=(2, 3))
             for k, row in enumerate(filled):
