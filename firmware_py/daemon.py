@@ -1094,7 +1094,10 @@ class Daemon:
         flow = f"flow {s.flow_x:+.2f},{s.flow_y:+.2f} px/frame q {s.quality}" if s else "flow -"
         if s and s.line_ground:  # read with the summary's line-ground table (paving, tiles)
             flow += " (line ground)"
-        c = looming_cues(self.stats.last_field) if self.stats.last_field is not None else None
+        try:  # (a cue that failed on that frame was logged by _cues; the status line goes on)
+            c = looming_cues(self.stats.last_field) if self.stats.last_field is not None else None
+        except Exception:  # noqa: BLE001
+            c = None
         if c is not None and c.detections:
             frame_s = self._frame_interval_s()
             ttc = c.time_to_contact_frames * frame_s

@@ -404,6 +404,25 @@ def test_a_failing_cue_sends_its_extras_unknown_and_keeps_the_flow(tmp_path, cap
     assert "looming cues failed on frame" in caplog.text and "its extra values go out unknown" in caplog.text
 
 
+def test_cues_that_always_fail_leave_the_status_line_and_the_flow(tmp_path, caplog, monkeypatch):
+    """The status line computes the last field's cues again: one that raises there, too,
+    must not end the daemon (its frames' extras went out as NaN, logged once per 5 s)."""
+    import firmware_py.daemon as daemon_module
+
+    def failing(field):
+        raise ZeroDivisionError("float division by zero")
+
+    monkeypatch.setattr(daemon_module, "looming_cues", failing)
+    caplog.set_level(logging.INFO, logger="emdflowd")
+    code, daemon, data = run_daemon(_engine_config(("link", "extra_values", True), ("source", "fps", 100.0),
+                                                   ("source", "realtime", True), ("daemon", "log_interval_s", 0.5)),
+                                    frames=80, estimator_factory=_failing_factory([]))
+    assert code == 0 and daemon.stats.processed == 80 and daemon.stats.engine_errors == 80
+    assert "fps processed" in caplog.text  # (a status line during the run)
+    assert caplog.text.count("looming cues failed") == 1
+    assert any(m.get_type() == "OPTICAL_FLOW" and m.quality > 0 for m in parse_mavlink(data))
+
+
 def test_frame_of_wrong_size_is_skipped_with_a_clear_line(tmp_path, caplog):
     def factory():
         return FaultySource(make_source("synthetic:u=2,v=1", width=96, height=72, fps=100), bad_at=10)
