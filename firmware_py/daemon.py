@@ -901,13 +901,7 @@ class Daemon:
             raise RuntimeError(f"{self._failures} engine errors in {failing_s:.1f} s without a flow between "
                                f"them, the last in the {stage} on frame {frame.index}: {type(exc).__name__}: "
                                f"{exc}; exiting for a restart") from exc
-        now = time.monotonic()
-        if now - self._last_engine_log >= _BAD_FRAME_LOG_S:  # (the first one always)
-            self._last_engine_log = now
-            # (with its traceback: it says where)
-            log.error("%s failed on frame %d (%s: %s): frame skipped, estimator reset (%d engine errors "
-                      "so far)", stage, frame.index, type(exc).__name__, exc, self.stats.engine_errors,
-                      exc_info=exc)
+        self._log_engine_error(f"{stage} failed on frame {frame.index}", "frame skipped, estimator reset", exc)
         try:
             self.estimator.reset()
         except Exception as reset_exc:  # noqa: BLE001 - the next frame's update says more
@@ -924,13 +918,18 @@ class Daemon:
             return looming_cues(field)
         except Exception as exc:  # noqa: BLE001 - the extras are optional, the flow is not
             self.stats.engine_errors += 1
-            now = time.monotonic()
-            if now - self._last_engine_log >= _BAD_FRAME_LOG_S:
-                self._last_engine_log = now
-                log.error("looming cues failed on frame %d (%s: %s): its extra values go out unknown (%d "
-                          "engine errors so far)", frame.index, type(exc).__name__, exc,
-                          self.stats.engine_errors, exc_info=exc)
+            self._log_engine_error(f"looming cues failed on frame {frame.index}",
+                                   "its extra values go out unknown", exc)
             return None
+
+    def _log_engine_error(self, what: str, done: str, exc: Exception) -> None:
+        """One error line with its traceback (it says where), at most one per
+        :data:`_BAD_FRAME_LOG_S` (the first one always)."""
+        now = time.monotonic()
+        if now - self._last_engine_log >= _BAD_FRAME_LOG_S:
+            self._last_engine_log = now
+            log.error("%s (%s: %s): %s (%d engine errors so far)", what, type(exc).__name__, exc, done,
+                      self.stats.engine_errors, exc_info=exc)
 
     def _process(self, frame: Frame, now_s: float) -> None:
         t0 = host_us()

@@ -284,10 +284,17 @@ def stored_flights_problem(path, scored: bool = False) -> str | None:
                 f"histogram per frame of its 'flow' ({len(flow)} frames)")
     if len(stats) != 2 or stats[0] != len(flow):
         return f"its 'stats' array has shape {stats}: expected one row per frame of its 'flow' ({len(flow)} frames)"
-    if stats[1] != STAT_FIRST_CHANGED + hist[2] // 2:  # (the summary's own check, up front)
-        return (f"its 'stats' rows hold {stats[1]} counts: the engine's {STAT_FIRST_CHANGED + hist[2] // 2} for "
-                f"the {hist[2] // 2} channels of its 'hist'")
+    channels = hist[2] // 2
+    if stats[1] != STAT_FIRST_CHANGED + channels:  # (the summary's own check, up front)
+        return (f"its 'stats' rows hold {stats[1]} counts: the engine's {STAT_FIRST_CHANGED + channels} for "
+                f"the {channels} channels of its 'hist'")
     return None
+
+
+def recorded_model(stored) -> str:
+    """The model an opened file of stored flights was flown with (a file from before the
+    extended model records none: the paper's)."""
+    return str(stored["model"]) if "model" in stored else "paper"
 
 
 def has_diagonal(data) -> bool:
@@ -563,7 +570,7 @@ def _frame_chunks(data, model: str, params, samples: int, chunk: int = FIT_CHUNK
     parts, count = [], 0
     for path in data:
         with np.load(path) as d:
-            recorded = str(d["model"]) if "model" in d.files else "paper"
+            recorded = recorded_model(d)
             if recorded != model:
                 raise SystemExit(f"{path}: flights of the {recorded!r} model, not {model!r}")
             if d["hist"].shape[2] != 2 * len(params.channels):
@@ -891,7 +898,7 @@ def _stored_fields(data):
 
     h, w = (int(x) for x in data["shape"])
     codes = np.zeros((h, w), np.int8)
-    params = EngineParams(**model_options(str(data["model"]) if "model" in data else "paper",
+    params = EngineParams(**model_options(recorded_model(data),
                                           np.asarray(data["hist"]).shape[1] == 4,
                                           str(data["threshold_mode"]) if "threshold_mode" in data else None))
     fields = [FlowField(codes, codes, st, hi, params, int(data["frame_index"]))
@@ -954,7 +961,7 @@ def margin_sweep(paths, margins, out=print):
             data = {k: z[k] for k in z.files}
         if "texture" not in data:
             raise SystemExit(f"{path}: no texture names (an older evaluate --save): render it again")
-        model = str(data["model"]) if "model" in data else "paper"
+        model = recorded_model(data)
         fields, flows = _stored_fields(data)
         textures = np.asarray(data["texture"])
         names = list(dict.fromkeys(str(t) for t in textures))
@@ -1234,7 +1241,7 @@ def main(argv=None):
                 ap.error(f"data {path}: {problem}")
             if a.cmd != "margin":  # (margin reads each file's own model)
                 with np.load(path) as stored:
-                    flown = str(stored["model"]) if "model" in stored.files else "paper"
+                    flown = recorded_model(stored)
                 if flown != a.model:
                     ap.error(f"data {path}: flights of the {flown} model, not --model {a.model}")
     if a.cmd in ("collect", "evaluate"):

@@ -93,21 +93,25 @@ def run(args) -> int:
     if args.focal_length_px is not None and not source.fps:
         raise ToolError(f"{args.input}: no frame rate known; rates need --fps", 2)
     est = make_estimator(args, source.width, source.height)
-    option, target = ("-o", args.output) if args.output else ("", "standard output")
-    with writing(option, target):
+    # (only the output's own calls inside writing(): an error reading the input is not its)
+    named = ("-o", args.output) if args.output else ("", "standard output")
+    with writing(*named):
         out = open(args.output, "w", newline="") if args.output else sys.stdout
+
+    def emit(line: str) -> None:
+        with writing(*named):
+            out.write(line + "\n")
+
     try:
-        with writing(option, target):
-            out.write(csv_header(args.focal_length_px is not None) + "\n")
+        emit(csv_header(args.focal_length_px is not None))
         with progress_bar(source.frame_count, "frames", disable=args.quiet or not args.output) as bar:
             for i, frame in enumerate(source):
                 s = summarize(est.update(frame))
-                with writing(option, target):
-                    out.write(format_row(i, source.fps, s.flow_x, s.flow_y, s.quality, args.focal_length_px) + "\n")
+                emit(format_row(i, source.fps, s.flow_x, s.flow_y, s.quality, args.focal_length_px))
                 bar.update(1)
     finally:
         source.close()
-        with writing(option, target):
+        with writing(*named):
             if out is not sys.stdout:
                 out.close()
             else:

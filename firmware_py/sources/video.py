@@ -115,7 +115,9 @@ class VideoFileSource(FrameSource):
                  fps: float | None = None, loop: bool = False, realtime: bool = False):
         self.uri = f"video:{path}"
         self.path = str(path)
-        native_w, native_h, file_fps, _ = probe_video(self.path)
+        # (the declared frame count: approximate, a few frames either way; it tells a file cut
+        # off or corrupt partway from one read to its end)
+        native_w, native_h, file_fps, self.declared_frames = probe_video(self.path)
         self.width = int(width or native_w)
         self.height = int(height or native_h)
         if not (file_fps > 0 and math.isfinite(file_fps)):
@@ -147,9 +149,6 @@ class VideoFileSource(FrameSource):
             cap.set(cv2.CAP_PROP_CONVERT_RGB, 0)
         self._cap = cap
         self._index = 0
-        # what the container declares (approximate: a few frames either way), to tell a file
-        # cut off or corrupt partway from one read to its end
-        self.declared_frames = declared_frame_count(cap)
         self._decoded = 0  # frames decoded since the start of the file
         #: passes over the file that stopped decoding short of its declared frames (warned once)
         self.short_passes = 0
