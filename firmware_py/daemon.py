@@ -98,7 +98,9 @@ class Stats:
     """Counters and per-stage timings, cheap enough to update every frame.
 
     Counters only grow; :meth:`interval` returns the differences since the previous call.
-    Stage times are sums and maxima in µs per log interval.
+    Stage times are sums and maxima in µs per log interval. The capture thread counts too:
+    a counter either thread changes goes through :meth:`add` (``+=`` on an attribute is a
+    read and a write, and a thread switch between them loses the other thread's count).
     """
 
     COUNTERS = ("frames_in", "processed", "skipped", "dropped", "bad_frames", "resets",
@@ -115,25 +117,33 @@ class Stats:
         self.last_summary = None
         self.last_field = None
         self.started_host_us = host_us()
+        self._lock = threading.Lock()
+
+    def add(self, name: str, count: int = 1) -> None:
+        """Add ``count`` to the counter ``name`` (from any thread)."""
+        with self._lock:
+            setattr(self, name, getattr(self, name) + count)
 
     def stage(self, name: str, us: int) -> None:
-        self.stage_sum[name] += us
-        self.stage_n[name] += 1
-        if us > self.stage_max[name]:
-            self.stage_max[name] = us
+        with self._lock:  # (the capture thread times "capture" while the loop resets the sums)
+            self.stage_sum[name] += us
+            self.stage_n[name] += 1
+            if us > self.stage_max[name]:
+                self.stage_max[name] = us
 
     def interval(self) -> dict:
         """Counter increments and mean/max stage times since the previous call."""
         out = {}
-        for name in self.COUNTERS:
-            value = getattr(self, name)
-            out[name] = value - self._last[name]
-            self._last[name] = value
-        for name in self.STAGES:
-            n = self.stage_n[name]
-            out[f"{name}_ms"] = self.stage_sum[name] / n / 1000.0 if n else 0.0
-            out[f"{name}_max_ms"] = self.stage_max[name] / 1000.0
-            self.stage_sum[name] = self.stage_max[name] = self.stage_n[name] = 0
+        with self._lock:
+            for name in self.COUNTERS:
+                value = getattr(self, name)
+                out[name] = value - self._last[name]
+                self._last[name] = value
+            for name in self.STAGES:
+                n = self.stage_n[name]
+                out[f"{name}_ms"] = self.stage_sum[name] / n / 1000.0 if n else 0.0
+                out[f"{name}_max_ms"] = self.stage_max[name] / 1000.0
+                self.stage_sum[name] = self.stage_max[name] = self.stage_n[name] = 0
         return out
 
     def totals(self) -> dict:
@@ -379,7 +389,7 @@ class SourceKeeper:
         self.source, self._first_frame_at = source, None
         self._count_source_skips(source, counted=False)
         if self._opened_once:
-            self.stats.reopens += 1
+            self.stats.add("reopens")
             log.info("source %s reopened", source.uri)
         self._opened_once = True
         if self.on_open is not None:
@@ -391,10 +401,11 @@ class SourceKeeper:
         counts: a buffer it could not convert (bad), a frame a paced file or flight moved
         past (dropped, as the mailbox drops a camera's). ``counted=False``: only take the
         source's counts as the starting point (a source just opened or adopted)."""
+        bad, missed = source.bad_frames, source.missed_frames
         if counted:
-            self.stats.bad_frames += source.bad_frames - self._bad_seen
-            self.stats.dropped += source.missed_frames - self._missed_seen
-        self._bad_seen, self._missed_seen = source.bad_frames, source.missed_frames
+            self.stats.add("bad_frames", bad - self._bad_seen)
+            self.stats.add("dropped", missed - self._missed_seen)
+        self._bad_seen, self._missed_seen = bad, missed
 
     def read(self) -> Frame | None:
         """Next frame, or None while the source is unavailable (back-off running)."""
@@ -481,13 +492,13 @@ class _CaptureThread(threading.Thread):
                     break
                 self.stop.wait(min(max(self.keeper.retry_in_s(), 0.005), 0.05))
                 continue
-            self.stats.frames_in += 1
+            self.stats.add("frames_in")
             self.subset.observe_capture(frame)
             if not self.subset.accept(frame):
-                self.stats.skipped += 1
+                self.stats.add("skipped")
                 continue
             if self.mailbox.put(frame):
-                self.stats.dropped += 1
+                self.stats.add("dropped")
                 self.subset.busy_drop()
         self.keeper.close()
 
@@ -562,6 +573,7 @@ class Daemon:
         self._reopen_logs = False
         self._waits_in_read = False
         self._geometry_crop = (1.0, 1.0)  # the source's crop_fraction the focal length is for
+        self._opened_unchecked = False  # the keeper opened a source whose geometry is not checked yet
         self.estimator = None
         self.width = self.height = 0
         self.fps = 0.0
@@ -636,7 +648,7 @@ class Daemon:
         self._waits_in_read = bool(getattr(source, "waits_in_read", False))
         # Before opening: a camera without a focal length is a configuration error.
         self.focal_length_px = self.config.focal_length_px(self.width, source.default_focal_length_px)
-        keeper.on_open = self._check_geometry
+        keeper.on_open = self._note_opened
         try:
             source.open()
             keeper.adopt(source)
@@ -673,6 +685,12 @@ class Daemon:
                         "narrower lens or a centre crop lowers it, and a flow scaler calibrated from turns "
                         "would scale translations down (README, \"Wide lenses and turns\")",
                         self.focal_length_px, self.width, self.height, fov, gx, gy)
+
+    def _note_opened(self, source: FrameSource) -> None:
+        """The keeper opened a source (a camera absent at start, a reopen), maybe in the
+        capture thread: the loop checks its geometry before its next frame (the link and the
+        focal length belong to the loop's thread)."""
+        self._opened_unchecked = True
 
     def _check_geometry(self, source: FrameSource) -> None:
         """A source the keeper opened later (absent at start, or reopened), or one that
@@ -831,13 +849,14 @@ class Daemon:
                 frame = keeper.read()
                 ended = keeper.ended
                 if frame is not None:
-                    self.stats.frames_in += 1
+                    self.stats.add("frames_in")
                 elif not ended:
                     self.stop_event.wait(min(max(keeper.retry_in_s(), 0.001), _POLL_S))
             now_s = time.monotonic()
             if frame is not None:
                 source = keeper.source
-                if source is not None and source.crop_fraction != self._geometry_crop:
+                if source is not None and (self._opened_unchecked or source.crop_fraction != self._geometry_crop):
+                    self._opened_unchecked = False
                     self._check_geometry(source)
                 self._process(frame, now_s)
             elif ended:  # a recording's last frame is processed: send what is queued, stop
@@ -879,14 +898,15 @@ class Daemon:
                 break
 
     def _bad_frame(self, what: str) -> None:
-        self.stats.bad_frames += 1
+        self.stats.add("bad_frames")
         now = time.monotonic()
         if now - self._last_bad_log >= _BAD_FRAME_LOG_S:
             self._last_bad_log = now
             log.error("%s: frame skipped (%d bad frames so far)", what, self.stats.bad_frames)
 
     def _engine_error(self, frame: Frame, stage: str, exc: Exception, now_s: float) -> None:
-        """``stage`` (engine or summary) failed on ``frame``: skip it and reset the estimator
+        """``stage`` (engine, summary, or the estimator's reset after a frame gap) failed on
+        ``frame``: skip it and reset the estimator
         (its state may be half-written), so the link reports quality 0 while blind and the
         flow comes back once the history has refilled. Errors that keep it from coming back
         (no ready field between them) for :data:`_ENGINE_FAILURE_EXIT_S`, at least
@@ -946,7 +966,11 @@ class Daemon:
         reset = prev is not None and (frame.timestamp_us <= prev.timestamp_us or frame.index <= prev.index
                                       or frame.timestamp_us - prev.timestamp_us > gap_us)
         if reset:
-            self.estimator.reset()
+            try:
+                self.estimator.reset()
+            except Exception as exc:  # noqa: BLE001 - as an error in update: skip, retry the reset
+                self._engine_error(frame, "reset", exc, now_s)
+                return
             self.stats.resets += 1
             if frame.index <= prev.index or frame.timestamp_us <= prev.timestamp_us:
                 log.info("source restarted (frame %d after %d): estimator reset", frame.index, prev.index)

@@ -272,8 +272,9 @@ class _FailingEstimator:
     (1-based) and on every call from ``fail_from`` on: an OpenCL runtime error, a driver fault."""
 
     def __init__(self, inner, fail_on=(), fail_from=None,
-                 error=RuntimeError("clEnqueueNDRangeKernel failed: OUT_OF_RESOURCES")):
+                 error=RuntimeError("clEnqueueNDRangeKernel failed: OUT_OF_RESOURCES"), reset_fail_on=()):
         self.inner, self.fail_on, self.fail_from, self.error = inner, set(fail_on), fail_from, error
+        self.reset_fail_on = set(reset_fail_on)  # (1-based reset calls that raise ``error``)
         self.calls = self.resets = 0
 
     def update(self, frame):
@@ -284,6 +285,8 @@ class _FailingEstimator:
 
     def reset(self):
         self.resets += 1
+        if self.resets in self.reset_fail_on:
+            raise self.error
         self.inner.reset()
 
     def __getattr__(self, name):  # params, device, ...
@@ -346,6 +349,48 @@ def test_an_engine_error_skips_the_frame_and_the_flow_comes_back(tmp_path, caplo
     good = [i for i, q in enumerate(qualities) if q > 0]
     assert good and any(q == 0 for q in qualities[good[0]:])  # quality 0 after the error ...
     assert qualities[-1] > 0                                   # ... then good flow again
+
+
+class _GapSource:
+    """A real source whose timestamps jump ``gap_us`` forward from frame ``at`` on (a camera
+    that stalled): the daemon resets the estimator there."""
+
+    def __init__(self, inner, *, at, gap_us):
+        self.inner, self.at, self.gap_us = inner, at, gap_us
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def read(self):
+        from firmware_py.sources import Frame
+
+        frame = self.inner.read()
+        if frame is None or frame.index < self.at:
+            return frame
+        return Frame(frame.image, frame.timestamp_us + self.gap_us, frame.capture_host_us, frame.index)
+
+
+def test_an_error_in_the_estimators_reset_after_a_frame_gap_is_an_engine_error(tmp_path, caplog):
+    """The reset after a frame gap ran outside the engine-error guard: an exception there
+    (the OpenCL queue failing as the history buffers are cleared) ended the daemon with exit
+    1. Now it is an engine error like one in update: that frame is skipped, the estimator
+    reset again, and the flow comes back."""
+    caplog.set_level(logging.INFO, logger="emdflowd")
+    made = []
+    # (reset 1 is the warm-up's, reset 2 the gap's)
+    factory = _failing_factory(made, reset_fail_on=(2,),
+                               error=RuntimeError("clEnqueueFillBuffer failed: OUT_OF_HOST_MEMORY"))
+
+    def source():
+        return _GapSource(make_source("synthetic:u=2,v=1", width=96, height=72, fps=100), at=30, gap_us=2_000_000)
+
+    code, daemon, data = run_daemon(_engine_config(), frames=60, estimator_factory=factory, source_factory=source)
+    assert code == 0 and daemon.stats.engine_errors == 1, caplog.text[-2000:]
+    assert made[0].resets >= 3  # (the failed one, then the error's own)
+    assert re.search(r"reset failed on frame 30 \(RuntimeError: clEnqueueFillBuffer failed: OUT_OF_HOST_MEMORY\): "
+                     r"frame skipped, estimator reset", caplog.text)
+    qualities = [m.quality for m in parse_mavlink(data) if m.get_type() == "OPTICAL_FLOW"]
+    assert qualities[-1] > 0  # (the flow came back after the gap)
 
 
 @pytest.mark.parametrize("failing", [{"fail_from": 20}, {"fail_on": range(20, 1000, 8)}],

@@ -354,3 +354,54 @@ def test_a_source_that_waits_inside_read_gets_the_capture_thread(tmp_path):
     path = write_video(tmp_path / "clip.mkv", flight_frames(4, width=64, height=48), fps=25)
     assert DepthAISource(replay_path=str(path), realtime=True).waits_in_read
     assert not DepthAISource(replay_path=str(path)).waits_in_read
+
+
+class _SlowCountingCamera:
+    """A camera that finds every frame bad and says so slowly (its count a property that
+    gives up the GIL): the capture thread's count of its bad frames is then read while the
+    loop counts bad frames of its own."""
+
+    uri, live, missed_frames = "slow-counting", True, 0
+
+    def __init__(self):
+        self._bad = 0
+
+    @property
+    def bad_frames(self):
+        time.sleep(0.0005)
+        return self._bad
+
+    def read(self):
+        self._bad += 1
+        return Frame(np.zeros((4, 4), np.uint8), 0, time.monotonic_ns() // 1000, self._bad)
+
+    def close(self):
+        pass
+
+
+def test_bad_frames_counted_by_both_threads_are_all_counted():
+    """The capture thread (the source's skipped buffers, through the keeper) and the loop
+    (frames of the wrong size) both count bad frames. ``stats.bad_frames += n`` reads the
+    counter, then the source's count, then writes: a loop count in between was lost."""
+    from firmware_py.config import Config
+    from firmware_py.daemon import Daemon
+
+    daemon = Daemon(Config())
+    keeper = SourceKeeper(_SlowCountingCamera, stats=daemon.stats)
+    keeper.adopt(_SlowCountingCamera())
+    reads = 200
+
+    def capture():
+        for _ in range(reads):
+            keeper.read()
+
+    thread = threading.Thread(target=capture)
+    thread.start()
+    loop_counts = 0
+    while thread.is_alive():
+        daemon._bad_frame("frame of the wrong size")
+        loop_counts += 1
+        time.sleep(0.0001)
+    thread.join()
+    assert loop_counts > 50
+    assert daemon.stats.bad_frames == reads + loop_counts

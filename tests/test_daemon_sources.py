@@ -8,6 +8,7 @@ import math
 import os
 import re
 import sys
+import threading
 import time
 
 import cv2
@@ -1133,6 +1134,8 @@ def test_camera_absent_at_start_gets_its_focal_length_when_it_opens():
     f_asked = 320 / 2 / math.tan(math.radians(70.0) / 2)
     assert len(attempts) >= 2 and links[0].focal_lengths == [pytest.approx(f_asked), pytest.approx(_F_CROP)]
     assert daemon.focal_length_px == pytest.approx(_F_CROP)
+    # (the camera opened in the capture thread, but the link is the loop's: it was told there)
+    assert daemon.mode == "capture-thread" and links[0].threads == [threading.main_thread().name]
 
 
 @pytest.mark.parametrize("threading_mode", ["single", "capture-thread"])
@@ -1169,9 +1172,11 @@ class _NullLink:
     def __init__(self, focal_length_px=None):
         self.stats = {}
         self.focal_lengths = [focal_length_px]
+        self.threads = []  # (the threads that changed it)
 
     def set_focal_length_px(self, focal_length_px):
         self.focal_lengths.append(focal_length_px)
+        self.threads.append(threading.current_thread().name)
 
     def submit(self, sample, now_host_us=None):
         pass
