@@ -15,7 +15,8 @@ from pathlib import Path
 
 from emdflow.params import MODELS, THRESHOLD_MODES
 
-from .links.base import AUTOPILOT_PROTOCOLS, MIN_MESSAGE_RATE_HZ, MIN_RATE_REASON, protocol_refusal
+from .links.base import (AUTOPILOT_PROTOCOLS, MAX_REPORT_DELAY_MS, MIN_MESSAGE_RATE_HZ, MIN_RATE_REASON,
+                         protocol_refusal)
 
 __all__ = ["Config", "SourceConfig", "OpticsConfig", "EngineConfig", "LinkConfigSection",
            "DaemonConfig", "ConfigError", "load_config", "SECTIONS", "ARDUPILOT_MIN_QUALITY"]
@@ -140,6 +141,11 @@ class LinkConfigSection:
     # must equal INAV's opflow_scale, or INAV's rates come out scaled by the ratio
     msp_counts_per_degree: float = _opt(10.5, minimum=0.1, maximum=1000.0,
                                         doc="MSP motion counts per degree of angular flow")
+    # INAV divides a report's counts by the time since the previous one arrived: each report
+    # goes out this long after its frame's capture (empty: automatic, just above the recent
+    # processing times; 0: as soon as processed)
+    msp_report_delay_ms: float | None = _opt(None, minimum=0.0, maximum=MAX_REPORT_DELAY_MS,
+                                             doc="MSP report delay after capture, ms")
 
 
 @dataclasses.dataclass

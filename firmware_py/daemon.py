@@ -529,7 +529,8 @@ def link_config(config, focal_length_px: float | None = None):
             sysid=c.sysid, compid=c.compid, sensor_id=c.sensor_id,
             message_rate_hz=c.message_rate_hz, heartbeat_rate_hz=c.heartbeat_rate_hz,
             ground_distance_m=c.ground_distance_m, message_log=c.message_log,
-            extra_values=c.extra_values, msp_counts_per_degree=c.msp_counts_per_degree, **optional)
+            extra_values=c.extra_values, msp_counts_per_degree=c.msp_counts_per_degree,
+            msp_report_delay_ms=c.msp_report_delay_ms, **optional)
     except ValueError as exc:
         raise ConfigError(f"{where} {exc}") from None
     problem = line_problem(settings)
@@ -834,16 +835,19 @@ class Daemon:
         next_wd = time.monotonic()
         limit = self.config.frames
         while not self.stop_event.is_set():
+            # (a report held for its send time, MSP's: wait no longer than until it is due)
+            wait_s = min(_POLL_S, self._link_wait_s())
             if mailbox is not None:
                 # (read before get: the capture thread puts a recording's last frame before it
                 # marks the end, so after the end an empty mailbox stays empty)
                 ended = keeper.ended
-                frame = mailbox.get(_POLL_S)
-            elif keeper.pacing_wait_s() > _POLL_S:
+                frame = mailbox.get(wait_s)
+            elif keeper.pacing_wait_s() > wait_s:
                 # A paced recording's next frame is more than a poll away (a slow --realtime
-                # file or flight): wait a slice, then service the link (heartbeats, the blind
-                # keep-alive, the watchdog); read() would sleep the whole frame period.
-                self.stop_event.wait(_POLL_S)
+                # file or flight), or comes after a held report is due: wait a slice, then
+                # service the link (heartbeats, the blind keep-alive, the watchdog, held
+                # reports); read() would sleep the whole frame period.
+                self.stop_event.wait(wait_s)
                 frame, ended = None, keeper.ended
             else:
                 frame = keeper.read()
@@ -896,6 +900,12 @@ class Daemon:
             if limit is not None and self.stats.processed >= limit:
                 log.info("processed %d frames (--frames): stopping", self.stats.processed)
                 break
+
+    def _link_wait_s(self) -> float:
+        """Seconds until the link has a held report due (inf: none held)."""
+        wake = getattr(self.link, "wake_in_s", None)  # (test stand-ins may lack it)
+        due = wake(host_us()) if wake is not None else None
+        return math.inf if due is None else due
 
     def _bad_frame(self, what: str) -> None:
         self.stats.add("bad_frames")
@@ -1164,7 +1174,7 @@ _LINK_COUNTERS = (("stale_messages", "stale"), ("open_failures", "open failures"
                   ("write_errors", "write errors"), ("read_errors", "read errors"),
                   ("integration_restarts", "restarts"), ("bytes_written", "bytes out"),
                   ("rx_bytes", "bytes in"), ("rx_garbage_bytes", "garbage in"),
-                  ("internal_errors", "internal errors"))
+                  ("internal_errors", "internal errors"), ("late_reports", "late reports"))
 
 
 def _link_stats(st, *, final: bool = False) -> str:
@@ -1177,6 +1187,9 @@ def _link_stats(st, *, final: bool = False) -> str:
     by_type = ",".join(f"{name} {count}" for name, count in sorted(sent.items())) or "none"
     text = (f"sent {by_type}; dropped {st.get('dropped_messages', 0)} blind {st.get('blind_reports', 0)} "
             f"port {'open' if st.get('port_open') else 'CLOSED'} reopens {st.get('reopen_count', 0)}")
+    delay = st.get("report_delay_ms")
+    if isinstance(delay, float) and delay > 0:  # (MSP: reports paced on the capture clock)
+        text += f" paced {delay:.1f} ms after capture"
     for key, label in _LINK_COUNTERS:
         value = st.get(key)
         # (bytes out and in grow with every frame: only the final line carries them)

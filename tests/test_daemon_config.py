@@ -122,6 +122,26 @@ def test_msp_counts_per_degree_is_a_link_key(tmp_path):
         load_config(_write(tmp_path, "[link]\nmsp_counts_per_degree = 0\n"))
 
 
+def test_msp_report_delay_ms_is_a_link_key(tmp_path):
+    """How long after its frame's capture an MSP report goes out: unset (automatic) by
+    default, a fixed delay or 0 (as soon as processed) when set, at most 50 ms."""
+    from firmware_py.daemon import link_config
+    from firmware_py.links import open_link
+
+    assert Config().link.msp_report_delay_ms is None
+    for text, fixed_us in (("8", 8000), ("0", 0), ("2.5", 2500)):
+        config = load_config(_write(tmp_path, f"[link]\nautopilot = 'inav'\nmsp_report_delay_ms = {text}\n"))
+        link = open_link(link_config(config, 400.0))
+        try:
+            assert link.pacer.fixed_us == fixed_us
+        finally:
+            link.close()
+    with pytest.raises(ConfigError, match=r"\[link\] msp_report_delay_ms = 60.0: must be <= 50"):
+        load_config(_write(tmp_path, "[link]\nmsp_report_delay_ms = 60\n"))
+    with pytest.raises(ConfigError, match=r"\[link\] msp_report_delay_ms = -1.0: must be >= 0"):
+        load_config(_write(tmp_path, "[link]\nmsp_report_delay_ms = -1\n"))
+
+
 def test_msp_counts_per_degree_reaches_the_wire(tmp_path):
     """The daemon's link sends -21 counts per degree when told (it must equal INAV's opflow_scale)."""
     log_path = tmp_path / "sent.csv"

@@ -352,3 +352,36 @@ def test_frames_a_paced_flight_moves_past_count_as_dropped():
     code, daemon, _ = run_daemon(config, frames=12, estimator_factory=slow)
     assert code == 0
     assert daemon.stats.dropped >= 12 and daemon.stats.skipped == 0
+
+
+@pytest.mark.parametrize("threading_mode", ["capture-thread", "single"])
+def test_inav_reports_leave_a_fixed_time_after_their_frames_capture(tmp_path, caplog, threading_mode):
+    """INAV divides a report's counts by the time since the previous report arrived, so the
+    daemon sends each MSP report a fixed delay after its newest frame's capture (automatic:
+    just above the recent processing times) instead of as soon as it is processed: the
+    reports' capture-to-write latencies are all about that delay, whatever each frame took,
+    and the loop wakes for them between frames (with a camera's capture thread, and in the
+    single thread of a paced flight)."""
+    import logging
+
+    caplog.set_level(logging.INFO, logger="emdflowd")
+    log_path = tmp_path / "sent.csv"
+    config = _config("synthetic:u=2,v=1", autopilot="inav",
+                     settings={("source", "width"): 96, ("source", "height"): 72, ("source", "fps"): 100.0,
+                               ("source", "realtime"): True, ("daemon", "threading"): threading_mode,
+                               ("link", "message_log"): str(log_path), ("daemon", "log_interval_s"): 1.0})
+    code, daemon, _ = run_daemon(config, frames=250)
+    assert code == 0
+    with open(log_path, newline="") as f:
+        reports = [r for r in csv.DictReader(f) if r["message"] == "MSP2_SENSOR_OPTIC_FLOW" and r["latency_us"]]
+    # (each held report's delay after capture, as the pacer chose it then: automatic, it
+    # follows the slowest frames seen so far)
+    late_ms = [(int(r["latency_us"]) - int(r["paced_us"])) / 1e3 for r in reports if r["paced_us"]]
+    assert len(reports) >= 100 and len(late_ms) >= 0.9 * len(reports)
+    assert all(1.0 <= int(r["paced_us"]) / 1e3 <= 25.0 for r in reports if r["paced_us"])
+    # Written at their time: the loop's wake-up and the write take a little, a loaded test
+    # machine's scheduler now and then more.
+    assert all(lat >= -0.01 for lat in late_ms), late_ms
+    assert sorted(late_ms)[int(0.8 * len(late_ms))] < 1.0, late_ms
+    delay_ms = daemon.link.stats["report_delay_ms"]
+    assert f"paced {delay_ms:.1f} ms after capture" in caplog.text

@@ -326,3 +326,75 @@ def test_a_link_config_refuses_a_protocol_its_autopilot_cannot_read(autopilot, p
     assert ("FLOW_TYPE = 5" in str(caught.value)) == (autopilot == "ardupilot")
     for autopilot, protocol in (("ardupilot", "mavlink"), ("px4", "mavlink"), ("both", "mavlink"), ("inav", "msp")):
         LinkConfig(port=None, autopilot=autopilot, protocol=protocol)
+
+
+def test_the_automatic_report_delay_follows_the_processing_time():
+    """The automatic delay after capture: just above the slowest 1 % of recent processing
+    times, raised at once when frames take longer, lowered only after a whole window of
+    faster frames (each change moves one report's arrival), never above 25 ms; reports
+    processed past their due time go out at once and are counted late; frames that do not
+    come in real time are not held."""
+    from firmware_py.links.pacing import AUTO_MAX_US, AUTO_WINDOW, ReportPacer
+
+    pacer = ReportPacer(None)
+    t = 1_000_000
+
+    def report(ready_us, period_us=20_000):
+        nonlocal t
+        t += period_us
+        return pacer.send_at(t, t, t + ready_us)
+
+    assert report(3_000) == t + 4_000                  # (its own time plus the 1 ms margin)
+    for _ in range(AUTO_WINDOW):
+        report(3_000)
+    assert pacer.delay_us == 4_000 and pacer.late == 0
+    assert report(9_000) is None and pacer.late == 1   # one slow frame: late (the slowest 1 % are)
+    assert [report(9_000) for _ in range(3)][-1] == t + 10_000   # a slow spell: followed at once
+    assert pacer.delay_us == 10_000 and pacer.late == 3
+    for _ in range(AUTO_WINDOW // 2):
+        report(3_000)
+    assert pacer.delay_us == 10_000                    # (not lowered within a window ...)
+    for _ in range(AUTO_WINDOW):
+        report(3_000)
+    assert pacer.delay_us == 4_000                     # (... but after one)
+    for _ in range(5):
+        assert report(60_000) is None
+    assert pacer.delay_us == AUTO_MAX_US and pacer.late == 8
+    # A recording read faster than it was captured: no capture clock to keep to.
+    assert report(1_000, period_us=20_000) is not None
+    t_host = t
+    assert pacer.send_at(t_host + 10, t + 20_000, t_host + 20) is None and not pacer.real_time
+    # Fixed and off.
+    assert ReportPacer(7_000).send_at(100, 100, 3_000) == 7_100
+    assert ReportPacer(0).send_at(100, 100, 3_000) is None
+    with pytest.raises(ValueError, match="report delay must be >= 0"):
+        ReportPacer(-1)
+
+
+@pytest.mark.parametrize("with_port", [True, False], ids=["port", "no-port"])
+def test_the_loop_is_woken_for_a_held_report_only_when_it_can_be_written(tmp_path, with_port):
+    """A report held for its send time tells the frame loop when to wake (``wake_in_s``); with
+    no port to write it to (or a full kernel buffer) it does not, or the loop would spin on a
+    due report it cannot send."""
+    from firmware_py.links import FlowSample
+
+    peer = PtyPeer(tmp_path / "ttyFC") if with_port else None
+    link = open_link(LinkConfig(port=peer.path if peer else None, baud=115200, autopilot="inav",
+                                msp_report_delay_ms=30.0))
+    try:
+        t = host_us()
+        for i in range(2):  # (the start marker, then a report: both held 30 ms after capture)
+            link.submit(FlowSample(timestamp_us=t + i * 20_000, capture_host_us=t + i * 20_000, flow_x=1.0,
+                                   flow_y=0.0, quality=200), now_host_us=t + i * 20_000 + 3_000)
+        now = t + 3_000
+        if with_port:
+            assert link.wake_in_s(now) == pytest.approx(0.027)
+            assert link.wake_in_s(t + 60_000) == 0.0
+            link.service(t + 30_000)
+            assert peer.read() and link.wake_in_s(t + 30_000) == pytest.approx(0.02)
+        else:
+            assert link.wake_in_s(now) is None
+    finally:
+        link.close()
+        if peer is not None:
+            peer.close()

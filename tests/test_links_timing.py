@@ -118,15 +118,24 @@ class FlightController:
         return max(b - a for a, b in zip(times, times[1:]))
 
 
+def held_us(link, engine_us):
+    """How long after its frame's submit a report reaches the autopilot when the frames take
+    ``engine_us`` to process: 0, or for MSP, whose reports go out on the capture clock, what
+    the pacer's delay after capture leaves (``firmware_py.links.pacing``)."""
+    pacer = getattr(link, "pacer", None)
+    return 0 if pacer is None else max(0, pacer.delay_us - engine_us)
+
+
 def make_link(peer, autopilot, **kw):
     return open_link(LinkConfig(port=peer.path, baud=921600, autopilot=autopilot, focal_length_px=F, **kw))
 
 
 def drive(link, fc, frames, *, start_us, end_us, stall=None):
-    """Run the host clock from ``start_us`` to ``end_us`` in 10 ms steps; each frame
-    ``(submit_host_us, sample)`` is submitted at its host time (to the µs). ``stall``:
-    ``(from_us, to_us)`` host times strictly between which ``service()`` is not called
-    (the frame loop is stuck in the engine)."""
+    """Run the host clock from ``start_us`` to ``end_us`` in steps of at most 10 ms; each
+    frame ``(submit_host_us, sample)`` is submitted at its host time (to the µs), and, as
+    the daemon's loop does, ``service()`` runs when a report held for its send time is
+    due (:meth:`FlowLink.wake_in_s`). ``stall``: ``(from_us, to_us)`` host times strictly
+    between which ``service()`` is not called (the frame loop is stuck in the engine)."""
     pending = sorted(frames, key=lambda item: item[0])
     t = start_us
     while t <= end_us:
@@ -134,10 +143,17 @@ def drive(link, fc, frames, *, start_us, end_us, stall=None):
             at, sample = pending.pop(0)
             link.submit(sample, now_host_us=at)
             fc.poll(at)
-        if stall is None or not stall[0] < t < stall[1]:
+        stalled = stall is not None and stall[0] < t < stall[1]
+        if not stalled:
             link.service(t)
         fc.poll(t)
-        t += STEP_US
+        step = t + STEP_US
+        if pending:
+            step = min(step, max(t + 1, pending[0][0]))
+        wake = None if stalled else link.wake_in_s(t)
+        if wake is not None:
+            step = min(step, t + max(1, round(wake * 1e6)))
+        t = step
 
 
 def stream(start_us, intervals_us, *, engine_us, flow_px_per_s=(0.0, 0.0), quality=200):
@@ -193,7 +209,7 @@ def test_slow_but_steady_stream_gets_its_real_flow_through(peer, caplog, autopil
     assert link.stats["integration_restarts"] == 0
     # Once frames stop, the keep-alive starts before the autopilot times out, whenever the
     # frame interval itself leaves room for that.
-    after_stop = [m for m in fc.messages if m["at"] > last_submit]
+    after_stop = [m for m in fc.messages if m["at"] > last_submit + held_us(link, engine_us)]
     assert after_stop and all(m["quality"] == 0 for m in after_stop)
     timeout = TIMEOUT_US[autopilot]
     warned = [r for r in caplog.records if "processed frames arrive every" in r.getMessage()]
@@ -244,7 +260,7 @@ def test_restart_starts_the_autopilots_interval_at_once(peer, autopilot):
     # The marker: quality 0, sent when the restart frame was submitted.
     restart_submits = [frames[31][0], frames[62][0]]
     for at in restart_submits:
-        marker = [m for m in fc.messages if m["at"] == at]
+        marker = [m for m in fc.messages if m["at"] == at + held_us(link, 3_000)]
         assert len(marker) == 1 and marker[0]["quality"] == 0
         if "time_usec" in marker[0]:
             assert marker[0]["time_usec"] == at - 3_000     # the restart frame's capture time
@@ -268,19 +284,75 @@ def test_keepalive_before_a_late_frame_keeps_the_interval_but_not_its_quality(pe
         drive(link, fc, frames, start_us=start, end_us=frames[-1][0] + STEP_US)
     finally:
         link.close()
-    late_submit = frames[9][0]
-    keepalives = [m for m in fc.messages if frames[8][0] < m["at"] < late_submit]
+    late_submit, held = frames[9][0], held_us(link, 5_000)
+    keepalives = [m for m in fc.messages if frames[8][0] + held < m["at"] < late_submit]
     assert len(keepalives) == 1 and keepalives[0]["quality"] == 0
-    late = [m for m in fc.messages if m["at"] == late_submit]
+    late = [m for m in fc.messages if m["at"] == late_submit + held]
     assert len(late) == 1 and late[0]["quality"] == 0 and not late[0]["used"]
     if autopilot == "px4":
         assert late[0]["integration_time_us"] == 420_000   # the frames' interval, not discarded
     assert link.stats["integration_restarts"] == 0
-    after = [m for m in fc.messages if m["at"] > late_submit]
+    after = [m for m in fc.messages if m["at"] > late_submit + held]
     assert len(after) == 5 and all(m["used"] for m in after)
     quantum = math.radians(1 / OPFLOW_SCALE) * 1e6 / 300_000 if autopilot == "inav" else 1e-6
     for m in fc.used():
         assert m["rate"][1] == pytest.approx(TRUE_RATE[1], rel=0.01, abs=quantum)
+
+
+def _processed_in_turn(start_us, count, engine_us, *, interval_us=10_000, flow_px_per_s=(0.0, 0.0)):
+    """Frames captured every ``interval_us`` and processed one after the other, frame i taking
+    ``engine_us[i]`` (a frame waits while the one before is still processed): ``[(submit_host_us,
+    sample)]`` as :func:`stream` gives them."""
+    frames, done = [], start_us
+    for i in range(count):
+        t = start_us + i * interval_us
+        done = max(done, t) + int(engine_us[i])
+        u, v = (c * interval_us / 1e6 for c in flow_px_per_s)
+        frames.append((done, FlowSample(timestamp_us=t, capture_host_us=t, flow_x=u if i else 0.0,
+                                        flow_y=v if i else 0.0, quality=200 if i else 0)))
+    return frames
+
+
+@pytest.mark.parametrize("delay_ms", [0.0, None, 12.0], ids=["as-processed", "automatic", "fixed-12ms"])
+def test_inav_reads_the_true_rate_however_long_each_frame_takes(peer, delay_ms):
+    """INAV divides a report's counts by the time since the previous report *arrived*. Sent
+    as soon as its frame is processed (``msp_report_delay_ms = 0``, all reports before), a
+    report arrives as much later as its frame took longer: processing times of 2-8 ms (every
+    100th frame 11 ms) moved the arrivals of 50 Hz reports by up to 6 ms, and INAV read rates
+    off by up to 30 %. Paced on the capture clock (automatic delay, the default, or a fixed
+    one) they arrive exactly as far apart as their frames were captured, and INAV reads the
+    true rate in every report but the few of the automatic delay's start (which follows the
+    slowest processing seen)."""
+    import numpy as np
+
+    rng = np.random.default_rng(5)
+    engine_us = rng.uniform(2_000, 8_000, 1_000)
+    engine_us[50::100] = 11_000
+    link = make_link(peer, "inav", message_rate_hz=50, msp_report_delay_ms=delay_ms)
+    fc = FlightController(peer, "inav")
+    flow = (0.0, 500.0)  # 5 rad/s at f = 100 px: 60 counts a report, so one count is 1.7 %
+    frames = _processed_in_turn(host_us(), len(engine_us), engine_us, flow_px_per_s=flow)
+    try:
+        drive(link, fc, frames, start_us=frames[0][0], end_us=frames[-1][0] + STEP_US)
+    finally:
+        link.close()
+    used = fc.used()
+    assert len(used) >= 490
+    gaps = [b["at"] - a["at"] for a, b in zip(fc.messages, fc.messages[1:])]
+    exact = sum(gap == 20_000 for gap in gaps) / len(gaps)
+    off = [abs(m["rate"][1] / 5.0 - 1) for m in used]
+    if delay_ms == 0:
+        assert exact < 0.1 and sum(e > 0.1 for e in off) > 0.3 * len(off)
+        assert link.stats["report_delay_ms"] == 0 and link.stats["late_reports"] == 0
+        return
+    assert exact > (0.97 if delay_ms is None else 0.999), gaps[:40]
+    assert sum(e <= inav_quantum(20_000) / 5.0 + 1e-9 for e in off) > (0.97 if delay_ms is None else 0.999) * len(off)
+    if delay_ms is None:
+        # (just above the slowest frames' processing, not at the ceiling)
+        assert 11.0 < link.stats["report_delay_ms"] <= 13.0
+        assert link.stats["late_reports"] <= 10
+    else:
+        assert link.stats["report_delay_ms"] == 12.0 and link.stats["late_reports"] == 0
 
 
 def test_extra_values_follow_their_frames_flow_message(peer):
@@ -488,7 +560,8 @@ def test_reports_at_the_floor_are_at_most_180ms_apart(peer, tmp_path, case, fps)
         link.close()
     assert link.message_rate_hz == rate
     per_report_us = FRAMES_PER_REPORT[fps][rate] * interval_us
-    assert fc.messages[0]["quality"] == 0 and fc.messages[0]["at"] == frames[0][0]   # the start marker
+    assert fc.messages[0]["quality"] == 0                                          # the start marker
+    assert fc.messages[0]["at"] == frames[0][0] + held_us(link, 3_000)
     arrivals = [m["at"] for m in fc.messages]
     gaps = [b - a for a, b in zip(arrivals, arrivals[1:])]
     assert max(gaps) <= FRESH_US, gaps
@@ -549,27 +622,28 @@ def test_a_late_frame_closes_the_pending_report_within_the_span_cap(peer, tmp_pa
     if autopilot == "px4":
         assert [m["integration_time_us"] for m in fc.messages] == spans
     # The jittery frames: one report each, as fresh as the frames themselves.
-    jitter_end = frames[len(JITTER_US)][0]
+    held = held_us(link, 3_000)
+    jitter_end = frames[len(JITTER_US)][0] + held
     jittery = [m["at"] for m in fc.messages if m["at"] <= jitter_end]
-    assert jittery == [at for at, _ in frames[:len(JITTER_US) + 1]]
+    assert jittery == [at + held for at, _ in frames[:len(JITTER_US) + 1]]
     late_index = len(JITTER_US) + FAST_BEFORE + 1
     late_submit = frames[late_index][0]
     # Up to the stall, 30 fps as well: at most 180 ms apart.
-    before = [m["at"] for m in fc.messages if m["at"] <= frames[late_index - 1][0]]
+    before = [m["at"] for m in fc.messages if m["at"] <= frames[late_index - 1][0] + held]
     assert max(b - a for a, b in zip(before, before[1:])) <= FRESH_US
-    at_late = [i for i, m in enumerate(fc.messages) if m["at"] == late_submit]
+    at_late = [i for i, m in enumerate(fc.messages) if m["at"] == late_submit + held]
     assert len(at_late) == 1, [fc.messages[i] for i in at_late]
     # the pending 100 ms (not the gap's discard), with quality 0
     assert spans[at_late[0]] == PENDING_FRAMES * FAST_US
     assert sum(intervals[late_index - 1 - PENDING_FRAMES:late_index - 1]) == spans[at_late[0]]
     assert fc.messages[at_late[0]]["quality"] == 0 and not fc.messages[at_late[0]]["used"]
-    keepalives = [m for m in fc.messages if frames[late_index - 1][0] < m["at"] < late_submit]
+    keepalives = [m for m in fc.messages if frames[late_index - 1][0] + held < m["at"] < late_submit]
     assert keepalives and all(m["quality"] == 0 for m in keepalives)
     arrivals = [m["at"] for m in fc.messages]
     assert len(set(arrivals)) == len(arrivals), "two reports at once"
     assert link.stats["integration_restarts"] == 1
     # The frames after the late one report their true flow from the first on (5 frames each).
-    after = [m for m in fc.messages if m["at"] > late_submit]
+    after = [m for m in fc.messages if m["at"] > late_submit + held]
     assert len(after) == len(AFTER_US) // 5 and all(m["used"] for m in after)
     if autopilot == "px4":
         assert {m["integration_time_us"] for m in after} == {5 * FAST_US}
@@ -601,12 +675,13 @@ def test_a_late_frame_after_an_engine_stall_closes_the_pending_report_with_quali
     assert link.stats["blind_reports"] == 0     # nothing went out during the stall
     spans = logged_spans(log_path)
     assert len(spans) == len(fc.messages)
-    at_late = [i for i, m in enumerate(fc.messages) if m["at"] == late_submit]
+    held = held_us(link, 3_000)
+    at_late = [i for i, m in enumerate(fc.messages) if m["at"] == late_submit + held]
     assert len(at_late) == 1
     closed = fc.messages[at_late[0]]
     previous = fc.messages[at_late[0] - 1]
-    assert spans[at_late[0]] == 2 * FAST_US                          # the pending frames' counts ...
-    assert late_submit - previous["at"] == 2 * FAST_US + stall_us    # ... the autopilot's interval
+    assert spans[at_late[0]] == 2 * FAST_US                                 # the pending frames' counts ...
+    assert late_submit + held - previous["at"] == 2 * FAST_US + stall_us    # ... the autopilot's interval
     assert closed["quality"] == 0 and not closed["used"]
     if autopilot == "inav":
         assert closed["rate"][1] == pytest.approx(1.0 * 2 * FAST_US / (2 * FAST_US + stall_us), abs=0.01)
@@ -619,9 +694,9 @@ def test_a_late_frame_after_an_engine_stall_closes_the_pending_report_with_quali
     arrivals = [m["at"] for m in fc.messages]
     assert len(set(arrivals)) == len(arrivals), "two reports at once"
     assert link.stats["integration_restarts"] == 1
-    after = [m for m in fc.messages if m["at"] > late_submit]
+    after = [m for m in fc.messages if m["at"] > late_submit + held]
     assert len(after) == 30 // 5 and all(m["used"] for m in after)
-    assert after[0]["at"] - late_submit == 5 * FAST_US     # counted from the late frame on
+    assert after[0]["at"] - (late_submit + held) == 5 * FAST_US     # counted from the late frame on
     if autopilot == "px4":
         assert {m["integration_time_us"] for m in after} == {5 * FAST_US}
     quantum = inav_quantum(5 * FAST_US) if autopilot == "inav" else 1e-6

@@ -106,6 +106,9 @@ BUSY_FRACTION = 0.6
 #: and jitter. (PX4's EKF2 has no such limit, but "both" feeds ArduPilot too, and one floor
 #: keeps the baud rule simple.)
 MIN_MESSAGE_RATE_HZ = 7.0
+#: Longest ``msp_report_delay_ms``: a report held longer leaves too little of INAV's 200 ms
+#: timeout for the keep-alives, which are timed from when reports are queued.
+MAX_REPORT_DELAY_MS = 50.0
 #: Reports go out at most this far apart (host µs) where the frames allow it: the floor's
 #: period alone, with reports ending on frames, let them drift to 200-227 ms apart at 9-10
 #: fps (a report waits for the frame after the period); ArduPilot's EKF3 and INAV need
@@ -195,6 +198,12 @@ class LinkConfig:
     msp_counts_per_degree : float
         MSP motion counts per degree of angular flow; must equal INAV's ``opflow_scale``
         (default 10.5) so INAV's rates come out in the right scale.
+    msp_report_delay_ms : float or None
+        MSP only: each report goes on the wire this long after its newest frame's capture,
+        ms, so that INAV (which divides a report's counts by the time since the previous one
+        arrived) sees the capture intervals, not the processing time's jitter; None:
+        automatic (just above the recent processing times, :mod:`firmware_py.links.pacing`);
+        0: each report as soon as it is processed.
     """
 
     port: str | None = None
@@ -213,6 +222,7 @@ class LinkConfig:
     message_log: str | None = None
     extra_values: bool = False
     msp_counts_per_degree: float = 10.5
+    msp_report_delay_ms: float | None = None
 
     def __post_init__(self):
         if self.autopilot not in AUTOPILOTS:
@@ -241,6 +251,9 @@ class LinkConfig:
                 raise ValueError(f"{name} must be 1..255, got {getattr(self, name)}")
         if not self.msp_counts_per_degree > 0:
             raise ValueError(f"msp_counts_per_degree must be positive, got {self.msp_counts_per_degree}")
+        if self.msp_report_delay_ms is not None and not 0 <= self.msp_report_delay_ms <= MAX_REPORT_DELAY_MS:
+            raise ValueError(f"msp_report_delay_ms must be 0..{MAX_REPORT_DELAY_MS:g} ms (or unset: automatic), "
+                             f"got {self.msp_report_delay_ms}")
 
 
 def protocol_refusal(autopilot: str, name: str | None = None, advice: str = "") -> str:
@@ -471,6 +484,13 @@ class FlowLink:
         self.config = replace(self.config, focal_length_px=focal_length_px)  # validates it
         self.integrator.focal_length_px = float(self.config.focal_length_px)
 
+    def wake_in_s(self, now_host_us: int) -> float | None:
+        """Seconds from ``now_host_us`` until a report held for its send time is due (0:
+        overdue; call :meth:`service` then); None: nothing held. The frame loop waits no
+        longer than this for its next frame."""
+        due = self.transport.next_due_us()
+        return None if due is None else max(0.0, (due - int(now_host_us)) / 1e6)
+
     def latencies_us(self) -> list[int]:
         """Capture-to-write latencies (µs) of flow messages written since the previous call.
 
@@ -537,7 +557,9 @@ class FlowLink:
             # With quality 0: its counts end at the previous frame, but the autopilot's next
             # interval runs from the previous message to now (INAV would divide them by that
             # longer time, PX4 match them with the wrong gyro window).
-            self._emit_pending(capture_host_us=self._last_capture_host_us, now=now, quality0=True)
+            # (sent on this frame's clock: the autopilot's next interval starts at this frame)
+            self._emit_pending(capture_host_us=self._last_capture_host_us, now=now, quality0=True,
+                               paced_on=(int(sample.capture_host_us), int(sample.timestamp_us)))
         accepted = integ.add_frame(timestamp_us=sample.timestamp_us, flow_x_px=sample.flow_x,
                                    flow_y_px=sample.flow_y, quality=sample.quality)
         if late or not accepted:
@@ -577,14 +599,16 @@ class FlowLink:
             self._send_extras(sample)
         self.transport.pump(now)
 
-    def _emit_pending(self, *, capture_host_us: int | None, now: int, quality0: bool = False) -> None:
-        """Send the pending interval as a report (``quality0``: with quality 0)."""
+    def _emit_pending(self, *, capture_host_us: int | None, now: int, quality0: bool = False,
+                      paced_on: tuple[int, int] | None = None) -> None:
+        """Send the pending interval as a report (``quality0``: with quality 0; ``paced_on``
+        as in :meth:`_emit`)."""
         interval = self.integrator.take()
         # (after a keep-alive the autopilot's interval began there, these counts earlier)
         if quality0 or self._keepalive_in_interval:
             interval = replace(interval, quality=0)
         self._keepalive_in_interval = False
-        self._emit(interval, capture_host_us=capture_host_us, now=now)
+        self._emit(interval, capture_host_us=capture_host_us, now=now, paced_on=paced_on)
 
     def _note_submit(self, now: int) -> None:
         """Track the host interval between submitted frames; warn once when it is longer
@@ -675,7 +699,12 @@ class FlowLink:
         self.stats["blind_reports"] += 1
         self._emit(self._quality0_interval(end_us=end, span_us=span), capture_host_us=None, now=now)
 
-    def _emit(self, interval: FlowInterval, *, capture_host_us: int | None, now: int | None = None) -> None:
+    def _emit(self, interval: FlowInterval, *, capture_host_us: int | None, now: int | None = None,
+              paced_on: tuple[int, int] | None = None) -> None:
+        """Queue the report of ``interval``, whose newest frame was captured at
+        ``capture_host_us`` (host clock; None: a keep-alive). ``paced_on``: the frame whose
+        capture times (host, capture clock) its send time follows where reports are paced
+        (default: the newest frame's, ``capture_host_us`` and ``interval.end_us``)."""
         now = host_us() if now is None else now
         self._last_flow_host_us = now
         self._last_report_end_us = interval.end_us
@@ -687,11 +716,17 @@ class FlowLink:
             # ... and its own rounding remainder: a quality-0 report with counts (closing an
             # interval after a keep-alive or a flow gap) would hand it to the next good one
             self._reset_carry()
+        if paced_on is None:
+            paced_on = (capture_host_us, interval.end_us)
+        not_before = self._send_at(*paced_on, now)
         for name, data, fields in messages:
             fields.setdefault("frames", interval.frame_count)
+            if not_before is not None:  # (held: its send time after the capture it follows)
+                fields["paced_us"] = not_before - paced_on[0]
             self.transport.enqueue(OutgoingMessage(name=name, data=data, queued_host_us=now,
                                                    capture_host_us=capture_host_us, fields=fields,
-                                                   flow=True, marker=interval.quality == 0))
+                                                   flow=True, marker=interval.quality == 0,
+                                                   not_before_host_us=not_before))
         self.transport.pump(now)
 
     def _flow_gap(self) -> None:
@@ -716,6 +751,12 @@ class FlowLink:
 
     def _reset_carry(self) -> None:
         """Forget fractional remainders (after an integration restart or a blind interval)."""
+
+    def _send_at(self, capture_host_us: int | None, capture_us: int, now: int) -> int | None:
+        """Host time (µs) before which a report of a frame captured at ``capture_host_us``
+        (None: a keep-alive; ``capture_us`` its capture time on the capture clock) is not
+        written; None: at once (the default)."""
+        return None
 
     def _handle_rx(self, data: bytes, now: int) -> None:
         """Bytes from the autopilot."""

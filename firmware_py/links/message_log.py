@@ -29,7 +29,7 @@ LOG_COLUMNS = (
     "host_us", "message", "bytes", "latency_us", "seq",
     "time_usec", "integration_time_us", "integrated_x", "integrated_y",
     "flow_rate_x", "flow_rate_y", "flow_x", "flow_y", "motion_x", "motion_y",
-    "quality", "distance", "sensor_id", "frames", "name", "value",
+    "quality", "distance", "sensor_id", "frames", "name", "value", "paced_us",
 )
 
 _FLUSH_EVERY_S = 1.0  # bounded loss on power-off without a flush per message on an SD card

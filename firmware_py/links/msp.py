@@ -27,6 +27,7 @@ import struct
 
 from ..angular import FlowInterval
 from .base import FlowLink, LinkConfig, carry_round
+from .pacing import ReportPacer
 
 __all__ = ["MspLink", "MSP2_SENSOR_OPTIC_FLOW", "crc8_dvb_s2", "encode_msp_v2", "encode_optic_flow",
            "WIRE_BYTES"]
@@ -92,7 +93,21 @@ class MspLink(FlowLink):
     def __init__(self, config: LinkConfig):
         self._carry = [0.0, 0.0]
         self._counts_per_rad = config.msp_counts_per_degree * 180.0 / math.pi
+        delay_ms = config.msp_report_delay_ms
+        #: each report on the capture clock: INAV divides its counts by the time since the
+        #: previous one arrived (module docstring of :mod:`firmware_py.links.pacing`)
+        self.pacer = ReportPacer(None if delay_ms is None else int(round(delay_ms * 1000)))
         super().__init__(config)
+        self.stats["report_delay_ms"] = 0.0
+        self.stats["late_reports"] = 0
+
+    def _send_at(self, capture_host_us: int | None, capture_us: int, now: int) -> int | None:
+        due = self.pacer.send_at(capture_host_us, capture_us, now)
+        if not self.pacer.real_time:
+            self.transport.release_held()  # (no capture clock to keep to: what waits goes now)
+        self.stats["report_delay_ms"] = self.pacer.delay_us / 1000.0
+        self.stats["late_reports"] = self.pacer.late
+        return due
 
     @classmethod
     def line_need(cls, config: LinkConfig) -> tuple[str, int, float, str]:

@@ -115,6 +115,9 @@ class OutgoingMessage:
     marker : bool
         A flow report with quality 0 (the autopilot starts its next interval there and
         uses nothing else of it).
+    not_before_host_us : int or None
+        Host time before which it is not written, µs (a report paced on the capture clock,
+        :mod:`firmware_py.links.pacing`); the messages behind it wait too. None: at once.
     """
 
     name: str
@@ -124,6 +127,7 @@ class OutgoingMessage:
     fields: dict = field(default_factory=dict)
     flow: bool = False
     marker: bool = False
+    not_before_host_us: int | None = None
 
 
 class SerialTransport:
@@ -343,7 +347,7 @@ class SerialTransport:
         deadline = host_us() + int(flush_timeout_s * 1e6)
         while self._fd is not None and (self._queue or self._current) and host_us() < deadline:
             before = (len(self._queue), self._current_offset)
-            self.pump()
+            self.pump(hold=False)  # (reports held for their send time go now: no later one comes)
             if (len(self._queue), self._current_offset) == before:
                 time.sleep(0.002)
         self._close_fd()
@@ -381,8 +385,11 @@ class SerialTransport:
             self._out_waiting_works = False
             return 0
 
-    def pump(self, now_us: int | None = None) -> None:
-        """Hand queued bytes to the OS as far as it accepts them without waiting."""
+    def pump(self, now_us: int | None = None, *, hold: bool = True) -> None:
+        """Hand queued bytes to the OS as far as it accepts them without waiting.
+
+        ``now_us``: the caller's host time (its clock times the messages' ``not_before_host_us``;
+        default: now). ``hold=False`` writes held messages too."""
         if self._fd is None:
             # No port: keep only fresh messages so a reopen does not send stale data.
             now_us = host_us()
@@ -396,6 +403,9 @@ class SerialTransport:
                 if self._kernel_backlog() > self.kernel_limit_bytes:
                     return
                 now = host_us()
+                due = self._queue[0].not_before_host_us
+                if hold and due is not None and (now if now_us is None else now_us) < due:
+                    return  # (paced: the caller wakes at next_due_us())
                 message = self._queue.popleft()
                 if now - message.queued_host_us > self.max_age_us:
                     self._count_drop(message, stale=True)
@@ -435,6 +445,21 @@ class SerialTransport:
                 self.latencies_us.append(latency)
             if self.on_sent is not None:
                 self.on_sent(message, done_us, latency)
+
+    def release_held(self) -> None:
+        """Let the queued messages held for their send time go with the next :meth:`pump`."""
+        for message in self._queue:
+            message.not_before_host_us = None
+
+    def next_due_us(self) -> int | None:
+        """Host time (µs) at which :meth:`pump` has a held message to write, None if none
+        is held (nothing queued, the next one goes at once) or if it could not be written
+        then anyway (no port, the kernel's buffer full: the caller's usual polling serves)."""
+        if self._current is not None or not self._queue or self._fd is None:
+            return None
+        if self._kernel_backlog() > self.kernel_limit_bytes:
+            return None
+        return self._queue[0].not_before_host_us
 
     @property
     def queued_messages(self) -> int:

@@ -1,0 +1,106 @@
+"""When a flow report goes on the wire: on the capture clock, a fixed delay after its frame.
+
+An autopilot that divides a report's counts by the time since the previous report *arrived*
+(INAV's MSP flow: ``rate = motion × 1e6 / Δt_us``) reads the processing time's variation
+as flow-rate noise when each report goes out as soon as its frame is processed: a frame
+that took 3 ms longer makes one interval 3 ms longer and the next 3 ms shorter, at 50 Hz
+±15 % on two rates. Sent ``delay`` after its newest frame's capture instead, the reports
+arrive as far apart as their frames were captured, and the counts match the time INAV
+divides them by.
+
+:class:`ReportPacer` picks that delay: fixed, or (automatic) just above the slowest of
+recent processing times (:data:`AUTO_QUANTILE` of the last :data:`AUTO_WINDOW` reports plus
+:data:`AUTO_MARGIN_US`), raised at once when processing gets slower, lowered only when it
+has been well below for a whole window (each change moves one arrival by the change), and
+never more than :data:`AUTO_MAX_US`. A report processed later than its due time goes out
+at once (counted as late): it arrives late, as every report did before. Frames that do not
+come in real time (a recording read as fast as it decodes, a test feeding frames in a loop:
+their host times advance less than half as fast as their capture times) are not paced:
+there is no capture clock to keep to, and holding them would only fill the queue (the
+caller then lets the reports it holds go, :attr:`ReportPacer.real_time`).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+__all__ = ["ReportPacer", "AUTO_WINDOW", "AUTO_QUANTILE", "AUTO_MARGIN_US", "AUTO_MAX_US"]
+
+#: Reports whose processing times the automatic delay looks at (5 s at 50 Hz).
+AUTO_WINDOW = 256
+#: The share of those the delay covers: the slowest 1 % go out late, as they are ready.
+AUTO_QUANTILE = 0.99
+#: Added to that quantile: scheduling and the write itself, µs.
+AUTO_MARGIN_US = 1000
+#: The automatic delay's ceiling, µs: past it, latency costs more than the steadier
+#: intervals gain (set a fixed delay to go further).
+AUTO_MAX_US = 25_000
+#: Processing times seen before the automatic delay follows the quantile (until then:
+#: the slowest seen, plus the margin).
+AUTO_WARMUP = 16
+
+
+class ReportPacer:
+    """Send times of flow reports on the capture clock (see the module docstring).
+
+    Parameters
+    ----------
+    delay_us : int or None
+        Fixed delay after the newest frame's capture, µs; 0: no pacing (each report goes out
+        when processed); None: automatic.
+    """
+
+    def __init__(self, delay_us: int | None):
+        if delay_us is not None and delay_us < 0:
+            raise ValueError(f"report delay must be >= 0 µs or automatic (None), got {delay_us}")
+        self.fixed_us = None if delay_us is None else int(delay_us)
+        self._ready_us: deque[int] = deque(maxlen=AUTO_WINDOW)
+        self._auto_us = 0
+        self._since_change = 0
+        self._previous: tuple[int, int] | None = None  # (capture_host_us, capture_us) of the last report
+        #: whether the last report's frames came in real time (False: not paced)
+        self.real_time = True
+        #: reports that were processed after their due time (sent at once)
+        self.late = 0
+
+    @property
+    def delay_us(self) -> int:
+        """The current delay after capture, µs (0: not pacing)."""
+        return self.fixed_us if self.fixed_us is not None else self._auto_us
+
+    def send_at(self, capture_host_us: int | None, capture_us: int, now_us: int) -> int | None:
+        """Host time (µs) to hand the report of a frame captured at ``capture_host_us`` (host
+        clock; ``capture_us`` on the capture clock) to the port, which is ready at
+        ``now_us``; None: at once (no capture time: a keep-alive; not pacing; frames that
+        do not come in real time). The first report is paced: the one after it counts from
+        its arrival."""
+        if capture_host_us is None or self.fixed_us == 0:
+            return None
+        previous, self._previous = self._previous, (int(capture_host_us), int(capture_us))
+        self.real_time = previous is None or 2 * (capture_host_us - previous[0]) >= capture_us - previous[1]
+        if not self.real_time:
+            return None
+        ready_us = max(0, int(now_us) - int(capture_host_us))
+        if self.fixed_us is None:
+            self._learn(ready_us)
+        due = int(capture_host_us) + self.delay_us
+        if due < now_us:
+            self.late += 1
+            return None
+        return due
+
+    def _learn(self, ready_us: int) -> None:
+        self._ready_us.append(ready_us)
+        self._since_change += 1
+        if len(self._ready_us) < AUTO_WARMUP:
+            wanted = max(self._ready_us) + AUTO_MARGIN_US
+        else:
+            wanted = int(np.quantile(np.fromiter(self._ready_us, np.int64), AUTO_QUANTILE)) + AUTO_MARGIN_US
+        wanted = min(AUTO_MAX_US, wanted)
+        if wanted > self._auto_us:  # slower: follow at once, or every report is late
+            self._auto_us, self._since_change = wanted, 0
+        elif (self._auto_us - wanted > AUTO_MARGIN_US and self._since_change >= AUTO_WINDOW):
+            # faster for a whole window (not a lull between two slow spells)
+            self._auto_us, self._since_change = wanted, 0
