@@ -143,7 +143,7 @@ class LinkConfigSection:
                                         doc="MSP motion counts per degree of angular flow")
     # INAV divides a report's counts by the time since the previous one arrived: each report
     # goes out this long after its frame's capture (empty: automatic, just above the recent
-    # processing times; 0: as soon as processed)
+    # times from capture to report; 0: as soon as processed)
     msp_report_delay_ms: float | None = _opt(None, minimum=0.0, maximum=MAX_REPORT_DELAY_MS,
                                              doc="MSP report delay after capture, ms")
 

@@ -503,6 +503,29 @@ class _CaptureThread(threading.Thread):
         self.keeper.close()
 
 
+class _ReportWriter(threading.Thread):
+    """Writes the link's reports held for their send time (MSP's, on the capture clock,
+    :mod:`firmware_py.links.pacing`) when they are due: the frame loop is in the engine for
+    most of a frame period, and a report due then would go out when it came back, as late as
+    that frame took long — the jitter the pacing is there to take out."""
+
+    def __init__(self, link, stop: threading.Event):
+        super().__init__(name="emdflowd-reports", daemon=True)
+        self.link, self.stop = link, stop
+
+    def run(self) -> None:
+        held = self.link.reports_held
+        while not self.stop.is_set():
+            held.clear()  # (before asking: a report queued after the answer sets it again)
+            wait_s = self.link.wake_in_s(host_us())
+            if wait_s is None:
+                held.wait(_POLL_S)  # (also polls: a report behind a message the port is still taking)
+            elif wait_s > 0:
+                self.stop.wait(wait_s)
+            else:
+                self.link.send_due(host_us())
+
+
 def _percentiles(values) -> tuple[float, float]:
     if len(values) == 0:
         return math.nan, math.nan
@@ -756,7 +779,7 @@ class Daemon:
         int
             Process exit code: 0 on a clean stop.
         """
-        keeper = mailbox = capture = None
+        keeper = mailbox = capture = writer = None
         try:
             keeper = self._start_source()
             t0 = time.monotonic()
@@ -771,6 +794,9 @@ class Daemon:
                 # The link's keep-alive starts then, but never later than the link's own value
                 # (MSP: 0.15 s, INAV times out after 0.2 s).
                 self.link.blind_after_s = min(self.link.blind_after_s, self.config.daemon.blind_after_s)
+            if getattr(self.link, "paces_reports", False):
+                writer = _ReportWriter(self.link, self.stop_event)
+                writer.start()
             self._send_cues = self.config.link.extra_values
             if self._send_cues and getattr(self.link, "protocol", "mavlink") != "mavlink":
                 # (MSP has no message for them: computed every frame, ~0.4 ms, and dropped)
@@ -813,6 +839,8 @@ class Daemon:
                 mailbox.close()
             if capture is not None:
                 capture.join(timeout=5.0)
+            if writer is not None:
+                writer.join(timeout=1.0)
             # Never release a device another thread is still reading (hung driver).
             if keeper is not None and not (capture is not None and capture.is_alive()):
                 keeper.close()
@@ -835,19 +863,16 @@ class Daemon:
         next_wd = time.monotonic()
         limit = self.config.frames
         while not self.stop_event.is_set():
-            # (a report held for its send time, MSP's: wait no longer than until it is due)
-            wait_s = min(_POLL_S, self._link_wait_s())
             if mailbox is not None:
                 # (read before get: the capture thread puts a recording's last frame before it
                 # marks the end, so after the end an empty mailbox stays empty)
                 ended = keeper.ended
-                frame = mailbox.get(wait_s)
-            elif keeper.pacing_wait_s() > wait_s:
+                frame = mailbox.get(_POLL_S)
+            elif keeper.pacing_wait_s() > _POLL_S:
                 # A paced recording's next frame is more than a poll away (a slow --realtime
-                # file or flight), or comes after a held report is due: wait a slice, then
-                # service the link (heartbeats, the blind keep-alive, the watchdog, held
-                # reports); read() would sleep the whole frame period.
-                self.stop_event.wait(wait_s)
+                # file or flight): wait a slice, then service the link (heartbeats, the blind
+                # keep-alive, the watchdog); read() would sleep the whole frame period.
+                self.stop_event.wait(_POLL_S)
                 frame, ended = None, keeper.ended
             else:
                 frame = keeper.read()
@@ -900,12 +925,6 @@ class Daemon:
             if limit is not None and self.stats.processed >= limit:
                 log.info("processed %d frames (--frames): stopping", self.stats.processed)
                 break
-
-    def _link_wait_s(self) -> float:
-        """Seconds until the link has a held report due (inf: none held)."""
-        wake = getattr(self.link, "wake_in_s", None)  # (test stand-ins may lack it)
-        due = wake(host_us()) if wake is not None else None
-        return math.inf if due is None else due
 
     def _bad_frame(self, what: str) -> None:
         self.stats.add("bad_frames")
@@ -1121,7 +1140,9 @@ class Daemon:
     # -- status -----------------------------------------------------------------------
     def status_text(self, iv: dict | None = None, period_s: float | None = None) -> str:
         """One line: rates, counters, stage times, latency, flow."""
-        st = self.link.stats if self.link is not None else None
+        # (a copy: the report writer thread counts what it sends)
+        snapshot = getattr(self.link, "stats_snapshot", None)
+        st = snapshot() if snapshot is not None else getattr(self.link, "stats", None)
         lat50, lat99 = _percentiles(self.latencies_us if iv is None else self._interval_latencies)
         s = self.stats.last_summary
         flow = f"flow {s.flow_x:+.2f},{s.flow_y:+.2f} px/frame q {s.quality}" if s else "flow -"

@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+import re
 import statistics
 import sys
 import time
@@ -354,34 +355,83 @@ def test_frames_a_paced_flight_moves_past_count_as_dropped():
     assert daemon.stats.dropped >= 12 and daemon.stats.skipped == 0
 
 
+class _UnevenEngine:
+    """The daemon's estimator, each update padded to 2-8 ms (every 100th to 11 ms): a
+    board whose processing time varies from frame to frame."""
+
+    def __init__(self, inner):
+        self.inner, self.calls = inner, 0
+        self.rng = np.random.default_rng(5)
+
+    def update(self, image):
+        self.calls += 1
+        until = time.perf_counter() + (0.011 if self.calls % 100 == 50 else self.rng.uniform(0.002, 0.008))
+        field = self.inner.update(image)
+        while time.perf_counter() < until:
+            time.sleep(0.0002)
+        return field
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+
 @pytest.mark.parametrize("threading_mode", ["capture-thread", "single"])
 def test_inav_reports_leave_a_fixed_time_after_their_frames_capture(tmp_path, caplog, threading_mode):
     """INAV divides a report's counts by the time since the previous report arrived, so the
     daemon sends each MSP report a fixed delay after its newest frame's capture (automatic:
-    just above the recent processing times) instead of as soon as it is processed: the
-    reports' capture-to-write latencies are all about that delay, whatever each frame took,
-    and the loop wakes for them between frames (with a camera's capture thread, and in the
-    single thread of a paced flight)."""
+    just above the recent ready times) instead of as soon as it is processed. With 2-8 ms
+    of processing (11 ms spikes) at 100 fps the automatic delay is longer than the frame
+    period: a report falls due while the loop is in the engine with the next frame, and
+    its writer thread sends it then. The 50 Hz reports then leave 20 ms apart (sent as
+    processed, 10 % of them were within 0.5 ms of that; written by the frame loop when it
+    got to it, 11 %)."""
     import logging
+
+    from firmware_py.daemon import Daemon
 
     caplog.set_level(logging.INFO, logger="emdflowd")
     log_path = tmp_path / "sent.csv"
     config = _config("synthetic:u=2,v=1", autopilot="inav",
                      settings={("source", "width"): 96, ("source", "height"): 72, ("source", "fps"): 100.0,
                                ("source", "realtime"): True, ("daemon", "threading"): threading_mode,
-                               ("link", "message_log"): str(log_path), ("daemon", "log_interval_s"): 1.0})
-    code, daemon, _ = run_daemon(config, frames=250)
+                               ("link", "message_rate_hz"): 50, ("link", "message_log"): str(log_path),
+                               ("daemon", "log_interval_s"): 1.0})
+
+    def estimator(width, height):
+        return _UnevenEngine(Daemon(config)._default_estimator(width, height))
+
+    code, daemon, _ = run_daemon(config, frames=400, estimator_factory=estimator)
     assert code == 0
     with open(log_path, newline="") as f:
         reports = [r for r in csv.DictReader(f) if r["message"] == "MSP2_SENSOR_OPTIC_FLOW" and r["latency_us"]]
-    # (each held report's delay after capture, as the pacer chose it then: automatic, it
-    # follows the slowest frames seen so far)
-    late_ms = [(int(r["latency_us"]) - int(r["paced_us"])) / 1e3 for r in reports if r["paced_us"]]
-    assert len(reports) >= 100 and len(late_ms) >= 0.9 * len(reports)
-    assert all(1.0 <= int(r["paced_us"]) / 1e3 <= 25.0 for r in reports if r["paced_us"])
-    # Written at their time: the loop's wake-up and the write take a little, a loaded test
-    # machine's scheduler now and then more.
-    assert all(lat >= -0.01 for lat in late_ms), late_ms
-    assert sorted(late_ms)[int(0.8 * len(late_ms))] < 1.0, late_ms
+    assert len(reports) >= 190
+    # (each held report's delay after capture, as the pacer chose it then)
+    held = [r for r in reports if r["paced_us"]]
+    assert len(held) >= 0.95 * len(reports)
+    assert all(1.0 <= int(r["paced_us"]) / 1e3 <= 25.0 for r in held)
+    assert max(int(r["paced_us"]) for r in held[50:]) > 10_000  # (longer than a frame period)
+    late_ms = [(int(r["latency_us"]) - int(r["paced_us"])) / 1e3 for r in held]
+    assert min(late_ms) >= -0.01 and statistics.median(late_ms) < 2.0, late_ms
+    # After the automatic delay's start; a loaded test machine's scheduler now and then
+    # writes one late.
+    written = [int(r["host_us"]) for r in reports[50:]]
+    steady = sum(abs(b - a - 20_000) <= 500 for a, b in zip(written, written[1:])) / (len(written) - 1)
+    assert steady >= 0.5, steady
     delay_ms = daemon.link.stats["report_delay_ms"]
     assert f"paced {delay_ms:.1f} ms after capture" in caplog.text
+
+
+def test_the_pacing_check_prints_the_intervals_inav_divides_by(capsys):
+    """``python -m firmware_py.pacing_check`` (the README's INAV numbers): one run, its
+    report intervals and how late the held reports were written."""
+    from firmware_py.pacing_check import main
+
+    assert main(["--frames", "160", "--threading", "single"]) == 0
+    out = capsys.readouterr().out
+    match = re.search(r"intervals between written reports: p5 ([\d.]+) p50 ([\d.]+) p95 ([\d.]+) ms; "
+                      r"(\d+)% within 0.5 ms of 20 ms", out)
+    assert match, out
+    assert float(match[2]) == pytest.approx(20.0, abs=0.5)  # (50 Hz reports, however they jitter)
+    assert "held reports written after their due time: p50" in out
+    with pytest.raises(SystemExit):
+        main(["--engine-ms", "fast"])

@@ -351,15 +351,22 @@ def test_the_automatic_report_delay_follows_the_processing_time():
     assert report(9_000) is None and pacer.late == 1   # one slow frame: late (the slowest 1 % are)
     assert [report(9_000) for _ in range(3)][-1] == t + 10_000   # a slow spell: followed at once
     assert pacer.delay_us == 10_000 and pacer.late == 3
-    for _ in range(AUTO_WINDOW // 2):
+    for _ in range(AUTO_WINDOW - 4):
         report(3_000)
-    assert pacer.delay_us == 10_000                    # (not lowered within a window ...)
-    for _ in range(AUTO_WINDOW):
+    assert pacer.delay_us == 10_000                    # (not lowered while they are in the window ...)
+    delays = []
+    for _ in range(20):
         report(3_000)
-    assert pacer.delay_us == 4_000                     # (... but after one)
+        delays.append(pacer.delay_us)
+    # (... then by 0.5 ms a report, one report's interval 0.5 ms short, not one 5 ms short,
+    # down to within the margin of what it would now choose, 4 ms)
+    assert delays == list(range(9_500, 4_500, -500)) + [5_000] * 10
     for _ in range(5):
         assert report(60_000) is None
     assert pacer.delay_us == AUTO_MAX_US and pacer.late == 8
+    pacer.written(due_us=1_000_000, written_us=1_001_500)
+    pacer.written(due_us=1_000_000, written_us=1_002_500)  # (a stalled writer: late as well)
+    assert pacer.late == 9
     # A recording read faster than it was captured: no capture clock to keep to.
     assert report(1_000, period_us=20_000) is not None
     t_host = t

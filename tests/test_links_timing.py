@@ -131,11 +131,12 @@ def make_link(peer, autopilot, **kw):
 
 
 def drive(link, fc, frames, *, start_us, end_us, stall=None):
-    """Run the host clock from ``start_us`` to ``end_us`` in steps of at most 10 ms; each
-    frame ``(submit_host_us, sample)`` is submitted at its host time (to the µs), and, as
-    the daemon's loop does, ``service()`` runs when a report held for its send time is
-    due (:meth:`FlowLink.wake_in_s`). ``stall``: ``(from_us, to_us)`` host times strictly
-    between which ``service()`` is not called (the frame loop is stuck in the engine)."""
+    """Run the host clock from ``start_us`` to ``end_us`` in 10 ms steps (the frame loop's
+    ``service()`` calls); each frame ``(submit_host_us, sample)`` is submitted at its host
+    time (to the µs), and, as the daemon's report writer thread does, ``send_due()`` runs
+    when a report held for its send time is due (:meth:`FlowLink.wake_in_s`), whatever the
+    loop is doing. ``stall``: ``(from_us, to_us)`` host times strictly between which
+    ``service()`` is not called (the frame loop is stuck in the engine)."""
     pending = sorted(frames, key=lambda item: item[0])
     t = start_us
     while t <= end_us:
@@ -143,14 +144,14 @@ def drive(link, fc, frames, *, start_us, end_us, stall=None):
             at, sample = pending.pop(0)
             link.submit(sample, now_host_us=at)
             fc.poll(at)
-        stalled = stall is not None and stall[0] < t < stall[1]
-        if not stalled:
+        if (t - start_us) % STEP_US == 0 and (stall is None or not stall[0] < t < stall[1]):
             link.service(t)
+        link.send_due(t)
         fc.poll(t)
-        step = t + STEP_US
+        step = start_us + ((t - start_us) // STEP_US + 1) * STEP_US
         if pending:
             step = min(step, max(t + 1, pending[0][0]))
-        wake = None if stalled else link.wake_in_s(t)
+        wake = link.wake_in_s(t)
         if wake is not None:
             step = min(step, t + max(1, round(wake * 1e6)))
         t = step

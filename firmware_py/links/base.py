@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 from dataclasses import dataclass, replace
 
 from ..angular import VALID_ROTATIONS_DEG, FlowIntegrator, FlowInterval, RecentIntervals
@@ -106,8 +107,10 @@ BUSY_FRACTION = 0.6
 #: and jitter. (PX4's EKF2 has no such limit, but "both" feeds ArduPilot too, and one floor
 #: keeps the baud rule simple.)
 MIN_MESSAGE_RATE_HZ = 7.0
-#: Longest ``msp_report_delay_ms``: a report held longer leaves too little of INAV's 200 ms
-#: timeout for the keep-alives, which are timed from when reports are queued.
+#: Longest ``msp_report_delay_ms``: INAV compensates rotation with its gyro over the arrival
+#: interval, so a report held longer compares its flow with a gyro window that much later;
+#: and a held report must stay well within the transport's 0.25 s before it is dropped as
+#: stale.
 MAX_REPORT_DELAY_MS = 50.0
 #: Reports go out at most this far apart (host µs) where the frames allow it: the floor's
 #: period alone, with reports ending on frames, let them drift to 200-227 ms apart at 9-10
@@ -348,9 +351,17 @@ class FlowLink:
     #: Shortest capture span a good report may cover, µs (0: any; the MAVLink link sets it
     #: before this class's __init__ for PX4's message sets).
     min_report_span_us = 0.0
+    #: Whether reports are held for a send time (:meth:`_send_at`): the caller then calls
+    #: :meth:`send_due` when :meth:`wake_in_s` says (the daemon: from its report writer thread).
+    paces_reports = False
 
     def __init__(self, config: LinkConfig):
         self.config = config
+        #: every public method holds it: the daemon's report writer thread sends held reports
+        #: (:meth:`send_due`) while the frame loop submits and services
+        self._lock = threading.RLock()
+        #: set when a report is queued to be held for its send time (:meth:`wake_in_s`)
+        self.reports_held = threading.Event()
         self.stats: dict = {"protocol": self.protocol, "port": config.port, "messages_sent": {},
                             "flow_reports": 0, "blind_reports": 0, "integration_restarts": 0,
                             "internal_errors": 0, "frames": 0}
@@ -456,7 +467,8 @@ class FlowLink:
         never raises.
         """
         try:
-            self._submit(sample, host_us() if now_host_us is None else int(now_host_us))
+            with self._lock:
+                self._submit(sample, host_us() if now_host_us is None else int(now_host_us))
         except Exception:  # noqa: BLE001 - the frame loop must survive any link bug
             self._internal_error("submit")
 
@@ -467,13 +479,14 @@ class FlowLink:
         """
         try:
             now = int(now_host_us)
-            self.transport.service(now)
-            data = self.transport.read_available(now_us=now)
-            if data:
-                self._handle_rx(data, now)
-            self._periodic(now)
-            self._blind_keepalive(now)
-            self.transport.pump(now)
+            with self._lock:
+                self.transport.service(now)
+                data = self.transport.read_available(now_us=now)
+                if data:
+                    self._handle_rx(data, now)
+                self._periodic(now)
+                self._blind_keepalive(now)
+                self.transport.pump(now)
         except Exception:  # noqa: BLE001
             self._internal_error("service")
 
@@ -481,15 +494,37 @@ class FlowLink:
         """Convert pixels to angles with this focal length (px) from the next report on:
         the daemon calls it when a camera opened after start-up delivers another image
         (aspect ratio, hence crop) than the one the link was made for."""
-        self.config = replace(self.config, focal_length_px=focal_length_px)  # validates it
-        self.integrator.focal_length_px = float(self.config.focal_length_px)
+        with self._lock:
+            self.config = replace(self.config, focal_length_px=focal_length_px)  # validates it
+            self.integrator.focal_length_px = float(self.config.focal_length_px)
 
     def wake_in_s(self, now_host_us: int) -> float | None:
         """Seconds from ``now_host_us`` until a report held for its send time is due (0:
-        overdue; call :meth:`service` then); None: nothing held. The frame loop waits no
-        longer than this for its next frame."""
-        due = self.transport.next_due_us()
+        due; call :meth:`send_due` then); None: none held that could be written then (see
+        :meth:`SerialTransport.next_due_us`). Never raises."""
+        try:
+            with self._lock:
+                due = self.transport.next_due_us()
+        except Exception:  # noqa: BLE001
+            self._internal_error("wake_in_s")
+            return None
         return None if due is None else max(0.0, (due - int(now_host_us)) / 1e6)
+
+    def send_due(self, now_host_us: int) -> None:
+        """Write the reports held for their send time that are due at ``now_host_us`` (host
+        µs), from any thread: the daemon's report writer calls it at :meth:`wake_in_s`,
+        whatever the frame loop is doing. Never blocks, never raises."""
+        try:
+            with self._lock:
+                self.transport.pump(int(now_host_us))
+        except Exception:  # noqa: BLE001
+            self._internal_error("send_due")
+
+    def stats_snapshot(self) -> dict:
+        """A copy of :attr:`stats` (its per-type counts too) taken while no other thread
+        changes them, for a status line."""
+        with self._lock:
+            return {key: dict(value) if isinstance(value, dict) else value for key, value in self.stats.items()}
 
     def latencies_us(self) -> list[int]:
         """Capture-to-write latencies (µs) of flow messages written since the previous call.
@@ -497,34 +532,39 @@ class FlowLink:
         Each value is the host time the message's last byte was handed to the OS minus the
         ``capture_host_us`` of the newest frame in it. Draining: every value is returned once.
         """
-        values = list(self.transport.latencies_us)
-        self.transport.latencies_us.clear()
+        with self._lock:
+            values = list(self.transport.latencies_us)
+            self.transport.latencies_us.clear()
         return values
 
     def close(self) -> None:
-        """Flush what is queued (best effort, ≤ 0.2 s) and close the port and the log."""
-        try:
-            self.transport.close()
-        except Exception:  # noqa: BLE001
-            self._internal_error("close")
-        if self.message_log is not None:
-            self.message_log.close()
+        """Flush what is queued (best effort, ≤ 0.2 s; reports held for their send time go
+        when due) and close the port and the log."""
+        with self._lock:
+            try:
+                self.transport.close()
+            except Exception:  # noqa: BLE001
+                self._internal_error("close")
+            if self.message_log is not None:
+                self.message_log.close()
 
     def reopen_message_log(self) -> str | None:
         """Reopen the message log (SIGHUP after a log rotation), or create it if it could
         not be at start-up (a folder made since); returns its path, None without one
         configured. Never raises: a log that still cannot be written logs a warning."""
-        if self.message_log is not None:
-            self.message_log.reopen()
-        elif self.config.message_log:
-            try:
-                self.message_log = MessageLog(self.config.message_log)
-            except OSError as exc:
-                log.warning("message log %s cannot be created: %s; not logging", self.config.message_log, exc)
+        with self._lock:
+            if self.message_log is not None:
+                self.message_log.reopen()
+            elif self.config.message_log:
+                try:
+                    self.message_log = MessageLog(self.config.message_log)
+                except OSError as exc:
+                    log.warning("message log %s cannot be created: %s; not logging", self.config.message_log,
+                                exc)
+                    return None
+            else:
                 return None
-        else:
-            return None
-        return self.message_log.path
+            return self.message_log.path
 
     def __enter__(self):
         return self
@@ -721,12 +761,16 @@ class FlowLink:
         not_before = self._send_at(*paced_on, now)
         for name, data, fields in messages:
             fields.setdefault("frames", interval.frame_count)
-            if not_before is not None:  # (held: its send time after the capture it follows)
-                fields["paced_us"] = not_before - paced_on[0]
+            if not_before is not None:
+                # (held: its send time after the capture its latency counts from, so that
+                # latency_us - paced_us is how late it was written)
+                fields["paced_us"] = not_before - (paced_on[0] if capture_host_us is None else capture_host_us)
             self.transport.enqueue(OutgoingMessage(name=name, data=data, queued_host_us=now,
                                                    capture_host_us=capture_host_us, fields=fields,
                                                    flow=True, marker=interval.quality == 0,
                                                    not_before_host_us=not_before))
+        if not_before is not None:
+            self.reports_held.set()
         self.transport.pump(now)
 
     def _flow_gap(self) -> None:

@@ -101,13 +101,23 @@ class MspLink(FlowLink):
         self.stats["report_delay_ms"] = 0.0
         self.stats["late_reports"] = 0
 
+    @property
+    def paces_reports(self) -> bool:
+        return self.pacer.fixed_us != 0
+
     def _send_at(self, capture_host_us: int | None, capture_us: int, now: int) -> int | None:
         due = self.pacer.send_at(capture_host_us, capture_us, now)
         if not self.pacer.real_time:
             self.transport.release_held()  # (no capture clock to keep to: what waits goes now)
-        self.stats["report_delay_ms"] = self.pacer.delay_us / 1000.0
+        self.stats["report_delay_ms"] = self.pacer.delay_us / 1000.0 if self.pacer.real_time else 0.0
         self.stats["late_reports"] = self.pacer.late
         return due
+
+    def _on_sent(self, message, host_us: int, latency_us: int | None) -> None:
+        if message.not_before_host_us is not None:
+            self.pacer.written(message.not_before_host_us, host_us)
+            self.stats["late_reports"] = self.pacer.late
+        super()._on_sent(message, host_us, latency_us)
 
     @classmethod
     def line_need(cls, config: LinkConfig) -> tuple[str, int, float, str]:

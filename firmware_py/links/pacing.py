@@ -6,18 +6,21 @@ as flow-rate noise when each report goes out as soon as its frame is processed: 
 that took 3 ms longer makes one interval 3 ms longer and the next 3 ms shorter, at 50 Hz
 ±15 % on two rates. Sent ``delay`` after its newest frame's capture instead, the reports
 arrive as far apart as their frames were captured, and the counts match the time INAV
-divides them by.
+divides them by. The daemon's report writer thread sends them when due, whatever its frame
+loop is doing (most of a frame period it is in the engine).
 
-:class:`ReportPacer` picks that delay: fixed, or (automatic) just above the slowest of
-recent processing times (:data:`AUTO_QUANTILE` of the last :data:`AUTO_WINDOW` reports plus
-:data:`AUTO_MARGIN_US`), raised at once when processing gets slower, lowered only when it
-has been well below for a whole window (each change moves one arrival by the change), and
-never more than :data:`AUTO_MAX_US`. A report processed later than its due time goes out
-at once (counted as late): it arrives late, as every report did before. Frames that do not
-come in real time (a recording read as fast as it decodes, a test feeding frames in a loop:
-their host times advance less than half as fast as their capture times) are not paced:
-there is no capture clock to keep to, and holding them would only fill the queue (the
-caller then lets the reports it holds go, :attr:`ReportPacer.real_time`).
+:class:`ReportPacer` picks that delay: fixed, or (automatic) just above the slowest of the
+recent ready times (capture to the report's queueing: delivery, waiting, engine, summary;
+:data:`AUTO_QUANTILE` of the last :data:`AUTO_WINDOW` reports plus :data:`AUTO_MARGIN_US`),
+never more than :data:`AUTO_MAX_US`. Each change of the delay moves one arrival by the
+change: it is raised at once when frames get slower (or each report would be late), and
+lowered by :data:`AUTO_STEP_DOWN_US` a report once the slow ones have left the window. A report
+ready after its due time goes out at once, and one written more than :data:`LATE_US` after
+it (a stalled writer) is counted too: both arrive late, as every report did before.
+Frames that do not come in real time (a recording read as fast as it decodes, a test
+feeding frames in a loop: their host times advance less than half as fast as their capture
+times) are not paced: there is no capture clock to keep to, and holding them would only
+fill the queue (the caller then lets the reports it holds go, :attr:`ReportPacer.real_time`).
 """
 
 from __future__ import annotations
@@ -26,20 +29,27 @@ from collections import deque
 
 import numpy as np
 
-__all__ = ["ReportPacer", "AUTO_WINDOW", "AUTO_QUANTILE", "AUTO_MARGIN_US", "AUTO_MAX_US"]
+__all__ = ["ReportPacer", "AUTO_WINDOW", "AUTO_QUANTILE", "AUTO_MARGIN_US", "AUTO_MAX_US",
+           "AUTO_STEP_DOWN_US", "LATE_US"]
 
-#: Reports whose processing times the automatic delay looks at (5 s at 50 Hz).
+#: Reports whose ready times the automatic delay looks at (5 s at 50 Hz).
 AUTO_WINDOW = 256
 #: The share of those the delay covers: the slowest 1 % go out late, as they are ready.
 AUTO_QUANTILE = 0.99
 #: Added to that quantile: scheduling and the write itself, µs.
 AUTO_MARGIN_US = 1000
-#: The automatic delay's ceiling, µs: past it, latency costs more than the steadier
-#: intervals gain (set a fixed delay to go further).
+#: The automatic delay's ceiling, µs: INAV compensates rotation with its gyro over the
+#: arrival interval, so a later report compares its flow with a later gyro window; past
+#: this, that costs more than steadier intervals gain (a fixed delay may go to 50 ms).
 AUTO_MAX_US = 25_000
-#: Processing times seen before the automatic delay follows the quantile (until then:
-#: the slowest seen, plus the margin).
+#: Ready times seen before the automatic delay follows the quantile (until then: the
+#: slowest seen, plus the margin).
 AUTO_WARMUP = 16
+#: Most the automatic delay is lowered by from one report to the next, µs: each report's
+#: interval is that much shorter than its counts' (2.5 % at 50 Hz).
+AUTO_STEP_DOWN_US = 500
+#: A report written more than this after its due time counts as late, µs.
+LATE_US = 2000
 
 
 class ReportPacer:
@@ -58,11 +68,10 @@ class ReportPacer:
         self.fixed_us = None if delay_us is None else int(delay_us)
         self._ready_us: deque[int] = deque(maxlen=AUTO_WINDOW)
         self._auto_us = 0
-        self._since_change = 0
         self._previous: tuple[int, int] | None = None  # (capture_host_us, capture_us) of the last report
         #: whether the last report's frames came in real time (False: not paced)
         self.real_time = True
-        #: reports that were processed after their due time (sent at once)
+        #: reports ready after their due time (sent at once) or written > LATE_US after it
         self.late = 0
 
     @property
@@ -82,25 +91,29 @@ class ReportPacer:
         self.real_time = previous is None or 2 * (capture_host_us - previous[0]) >= capture_us - previous[1]
         if not self.real_time:
             return None
-        ready_us = max(0, int(now_us) - int(capture_host_us))
         if self.fixed_us is None:
-            self._learn(ready_us)
+            self._learn(max(0, int(now_us) - int(capture_host_us)))
         due = int(capture_host_us) + self.delay_us
         if due < now_us:
             self.late += 1
             return None
         return due
 
+    def written(self, due_us: int, written_us: int) -> None:
+        """A held report due at ``due_us`` was written at ``written_us`` (host µs)."""
+        if written_us - due_us > LATE_US:
+            self.late += 1
+
     def _learn(self, ready_us: int) -> None:
         self._ready_us.append(ready_us)
-        self._since_change += 1
         if len(self._ready_us) < AUTO_WARMUP:
             wanted = max(self._ready_us) + AUTO_MARGIN_US
         else:
             wanted = int(np.quantile(np.fromiter(self._ready_us, np.int64), AUTO_QUANTILE)) + AUTO_MARGIN_US
         wanted = min(AUTO_MAX_US, wanted)
         if wanted > self._auto_us:  # slower: follow at once, or every report is late
-            self._auto_us, self._since_change = wanted, 0
-        elif (self._auto_us - wanted > AUTO_MARGIN_US and self._since_change >= AUTO_WINDOW):
-            # faster for a whole window (not a lull between two slow spells)
-            self._auto_us, self._since_change = wanted, 0
+            self._auto_us = wanted
+        elif self._auto_us - wanted > AUTO_MARGIN_US:
+            # (the quantile is of the whole window: the slow frames have left it, this is no
+            # lull between two slow spells)
+            self._auto_us = max(wanted, self._auto_us - AUTO_STEP_DOWN_US)

@@ -347,7 +347,7 @@ class SerialTransport:
         deadline = host_us() + int(flush_timeout_s * 1e6)
         while self._fd is not None and (self._queue or self._current) and host_us() < deadline:
             before = (len(self._queue), self._current_offset)
-            self.pump(hold=False)  # (reports held for their send time go now: no later one comes)
+            self.pump()  # (a report held for its send time goes when due: at most 50 ms)
             if (len(self._queue), self._current_offset) == before:
                 time.sleep(0.002)
         self._close_fd()
@@ -385,11 +385,11 @@ class SerialTransport:
             self._out_waiting_works = False
             return 0
 
-    def pump(self, now_us: int | None = None, *, hold: bool = True) -> None:
+    def pump(self, now_us: int | None = None) -> None:
         """Hand queued bytes to the OS as far as it accepts them without waiting.
 
         ``now_us``: the caller's host time (its clock times the messages' ``not_before_host_us``;
-        default: now). ``hold=False`` writes held messages too."""
+        default: now)."""
         if self._fd is None:
             # No port: keep only fresh messages so a reopen does not send stale data.
             now_us = host_us()
@@ -404,7 +404,7 @@ class SerialTransport:
                     return
                 now = host_us()
                 due = self._queue[0].not_before_host_us
-                if hold and due is not None and (now if now_us is None else now_us) < due:
+                if due is not None and (now if now_us is None else now_us) < due:
                     return  # (paced: the caller wakes at next_due_us())
                 message = self._queue.popleft()
                 if now - message.queued_host_us > self.max_age_us:
