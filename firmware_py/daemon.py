@@ -598,6 +598,7 @@ class Daemon:
         self._waits_in_read = False
         self._geometry_crop = (1.0, 1.0)  # the source's crop_fraction the focal length is for
         self._opened_unchecked = False  # the keeper opened a source whose geometry is not checked yet
+        self._reset_pending = False     # an engine error left the estimator to reset before the next frame
         self.estimator = None
         self.width = self.height = 0
         self.fps = 0.0
@@ -883,9 +884,10 @@ class Daemon:
                     self.stop_event.wait(min(max(keeper.retry_in_s(), 0.001), _POLL_S))
             now_s = time.monotonic()
             if frame is not None:
+                # (the flag before the source: a reopen in between sets it again)
+                opened, self._opened_unchecked = self._opened_unchecked, False
                 source = keeper.source
-                if source is not None and (self._opened_unchecked or source.crop_fraction != self._geometry_crop):
-                    self._opened_unchecked = False
+                if source is not None and (opened or source.crop_fraction != self._geometry_crop):
                     self._check_geometry(source)
                 self._process(frame, now_s)
             elif ended:  # a recording's last frame is processed: send what is queued, stop
@@ -934,10 +936,10 @@ class Daemon:
             log.error("%s: frame skipped (%d bad frames so far)", what, self.stats.bad_frames)
 
     def _engine_error(self, frame: Frame, stage: str, exc: Exception, now_s: float) -> None:
-        """``stage`` (engine, summary, or the estimator's reset after a frame gap) failed on
-        ``frame``: skip it and reset the estimator
-        (its state may be half-written), so the link reports quality 0 while blind and the
-        flow comes back once the history has refilled. Errors that keep it from coming back
+        """``stage`` (engine, summary, or the estimator's reset) failed on ``frame``: skip it
+        and reset the estimator before the next frame (its state may be half-written; a
+        reset that fails is tried again at the frame after), so the link reports quality 0
+        while blind and the flow comes back once the history has refilled. Errors that keep it from coming back
         (no ready field between them) for :data:`_ENGINE_FAILURE_EXIT_S`, at least
         :data:`_ENGINE_FAILURE_EXIT_ERRORS` of them, raise (the daemon exits 1 for systemd
         to restart it): an error on every few frames keeps the history from refilling."""
@@ -950,12 +952,9 @@ class Daemon:
             raise RuntimeError(f"{self._failures} engine errors in {failing_s:.1f} s without a flow between "
                                f"them, the last in the {stage} on frame {frame.index}: {type(exc).__name__}: "
                                f"{exc}; exiting for a restart") from exc
-        self._log_engine_error(f"{stage} failed on frame {frame.index}", "frame skipped, estimator reset", exc)
-        try:
-            self.estimator.reset()
-        except Exception as reset_exc:  # noqa: BLE001 - the next frame's update says more
-            log.debug("estimator reset after the error failed too: %s", reset_exc)
-        self.stats.resets += 1
+        self._log_engine_error(f"{stage} failed on frame {frame.index}",
+                               "frame skipped, estimator reset before the next one", exc)
+        self._reset_pending = True
         self._prev = None  # (the next frame starts the history again)
         self._last_frame_host_s = now_s  # (frames arrive: the camera is not blind)
 
@@ -992,15 +991,18 @@ class Daemon:
             return
         prev = self._prev
         gap_us = self._gap_s(self.config.engine.reset_after_gap_s) * 1e6
-        reset = prev is not None and (frame.timestamp_us <= prev.timestamp_us or frame.index <= prev.index
-                                      or frame.timestamp_us - prev.timestamp_us > gap_us)
+        gap = prev is not None and (frame.timestamp_us <= prev.timestamp_us or frame.index <= prev.index
+                                    or frame.timestamp_us - prev.timestamp_us > gap_us)
+        reset = gap or self._reset_pending
         if reset:
             try:
                 self.estimator.reset()
             except Exception as exc:  # noqa: BLE001 - as an error in update: skip, retry the reset
                 self._engine_error(frame, "reset", exc, now_s)
                 return
+            self._reset_pending = False
             self.stats.resets += 1
+        if gap:
             if frame.index <= prev.index or frame.timestamp_us <= prev.timestamp_us:
                 log.info("source restarted (frame %d after %d): estimator reset", frame.index, prev.index)
             else:

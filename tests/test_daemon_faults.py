@@ -340,7 +340,7 @@ def test_an_engine_error_skips_the_frame_and_the_flow_comes_back(tmp_path, caplo
     error = ("RuntimeError: clEnqueueNDRangeKernel failed: OUT_OF_RESOURCES" if stage == "engine"
              else "FloatingPointError: overflow in the likelihood search")
     assert re.search(rf"{stage} failed on frame \d+ \({re.escape(error)}\): frame skipped, estimator reset "
-                     r"\(1 engine errors so far\)", caplog.text)
+                     r"before the next one \(1 engine errors so far\)", caplog.text)
     assert sum(r.exc_info is not None for r in caplog.records) == 1  # (the traceback, once)
     assert caplog.text.count("frame skipped, estimator reset") == 1
     assert "engine errors 2 |" in caplog.text  # (the total: line, which names the link's
@@ -391,6 +391,29 @@ def test_an_error_in_the_estimators_reset_after_a_frame_gap_is_an_engine_error(t
                      r"frame skipped, estimator reset", caplog.text)
     qualities = [m.quality for m in parse_mavlink(data) if m.get_type() == "OPTICAL_FLOW"]
     assert qualities[-1] > 0  # (the flow came back after the gap)
+
+
+def test_a_reset_that_keeps_failing_ends_the_daemon_for_systemd_to_restart(monkeypatch, caplog):
+    """A reset that fails is tried again before the next frame, each failure an engine
+    error: the flow never comes back, so the daemon exits as for an engine that keeps
+    failing (before, the second failure was a debug line and the frames after it ran on
+    the uncleared history, their flow sent at full quality)."""
+    import firmware_py.daemon as daemon_module
+
+    monkeypatch.setattr(daemon_module, "_ENGINE_FAILURE_EXIT_S", 0.3)
+    caplog.set_level(logging.INFO, logger="emdflowd")
+    made = []
+    factory = _failing_factory(made, reset_fail_on=range(2, 100_000),
+                               error=RuntimeError("clEnqueueFillBuffer failed: OUT_OF_HOST_MEMORY"))
+
+    def source():
+        return _GapSource(make_source("synthetic:u=2,v=1", width=96, height=72, fps=100), at=30, gap_us=2_000_000)
+
+    with pytest.raises(RuntimeError, match=r"engine errors in 0\.[3-9] s without a flow between them, the last in "
+                                           r"the reset on frame \d+: RuntimeError: clEnqueueFillBuffer"):
+        run_daemon(_engine_config(("source", "realtime", True)), frames=1000, estimator_factory=factory,
+                   source_factory=source)
+    assert made[0].resets >= 10 and made[0].calls < 40  # (no update on the uncleared history)
 
 
 @pytest.mark.parametrize("failing", [{"fail_from": 20}, {"fail_on": range(20, 1000, 8)}],
