@@ -25,6 +25,7 @@ import contextlib
 import logging
 import math
 import statistics
+import sys
 import threading
 import time
 from collections import deque
@@ -49,6 +50,8 @@ __all__ = ["Daemon", "SourceKeeper", "FrameMailbox", "SteadySubset", "Stats", "c
 log = logging.getLogger("emdflowd")
 
 _POLL_S = 0.01            # longest wait for a frame before servicing the link again
+#: The interpreter's switch interval while the report writer runs, s (see _ReportWriter).
+_WRITER_SWITCH_S = 0.0005
 # A driver call (open, read, close) that has not returned for this long is hung (OpenCV's
 # V4L2 read gives up after 10 s): only a new process recovers it, so the daemon exits 1 and
 # systemd restarts it.
@@ -507,21 +510,47 @@ class _ReportWriter(threading.Thread):
     """Writes the link's reports held for their send time (MSP's, on the capture clock,
     :mod:`firmware_py.links.pacing`) when they are due: the frame loop is in the engine for
     most of a frame period, and a report due then would go out when it came back, as late as
-    that frame took long — the jitter the pacing is there to take out."""
+    that frame took long — the jitter the pacing is there to take out.
 
-    def __init__(self, link, stop: threading.Event):
+    While it runs, the interpreter's switch interval is at most :data:`_WRITER_SWITCH_S`:
+    a due report waits for the frame loop's thread to let go of the GIL (the OpenCL waits
+    do, numpy's small steps in the summary only every switch interval, 5 ms by default).
+    If it fails, the frame loop's ``service()`` still writes the due reports, later."""
+
+    def __init__(self, link):
         super().__init__(name="emdflowd-reports", daemon=True)
-        self.link, self.stop = link, stop
+        self.link = link
+        self._stopping = threading.Event()
+        self._switch_s = sys.getswitchinterval()
+
+    def start(self) -> None:
+        sys.setswitchinterval(min(self._switch_s, _WRITER_SWITCH_S))
+        super().start()
+
+    def stop(self) -> None:
+        self._stopping.set()
+        self.link.reports_held.set()  # (wakes it)
+        self.join(timeout=1.0)
+        sys.setswitchinterval(self._switch_s)
 
     def run(self) -> None:
+        try:
+            self._run()
+        except Exception:  # noqa: BLE001 - the loop's service() still writes them
+            log.exception("the report writer failed; held reports now go out when the frame loop "
+                          "services the link (later than due)")
+
+    def _run(self) -> None:
         held = self.link.reports_held
-        while not self.stop.is_set():
+        while not self._stopping.is_set():
             held.clear()  # (before asking: a report queued after the answer sets it again)
             wait_s = self.link.wake_in_s(host_us())
             if wait_s is None:
-                held.wait(_POLL_S)  # (also polls: a report behind a message the port is still taking)
+                # nothing held: sleep until one is (polling while the port is still taking
+                # something queued, which may hold one back)
+                held.wait(_POLL_S if self.link.queued_messages else None)
             elif wait_s > 0:
-                self.stop.wait(wait_s)
+                self._stopping.wait(wait_s)
             else:
                 self.link.send_due(host_us())
 
@@ -795,8 +824,8 @@ class Daemon:
                 # The link's keep-alive starts then, but never later than the link's own value
                 # (MSP: 0.15 s, INAV times out after 0.2 s).
                 self.link.blind_after_s = min(self.link.blind_after_s, self.config.daemon.blind_after_s)
-            if getattr(self.link, "paces_reports", False):
-                writer = _ReportWriter(self.link, self.stop_event)
+            if getattr(self.link, "paces_reports", False) is True:
+                writer = _ReportWriter(self.link)
                 writer.start()
             self._send_cues = self.config.link.extra_values
             if self._send_cues and getattr(self.link, "protocol", "mavlink") != "mavlink":
@@ -841,18 +870,18 @@ class Daemon:
             if capture is not None:
                 capture.join(timeout=5.0)
             if writer is not None:
-                writer.join(timeout=1.0)
+                writer.stop()  # (the link's close writes what it still holds, when due)
+            if self.link is not None:  # (before the camera's close, which a driver can hang in)
+                try:
+                    self.link.close()
+                except Exception as exc:
+                    log.warning("closing the link: %s", exc)
             # Never release a device another thread is still reading (hung driver).
             if keeper is not None and not (capture is not None and capture.is_alive()):
                 keeper.close()
             if self.running.is_set():
                 self.notifier.stopping()
-                self._log_status(final=True)
-            if self.link is not None:
-                try:
-                    self.link.close()
-                except Exception as exc:
-                    log.warning("closing the link: %s", exc)
+                self._log_status(final=True)  # (after the link's close: its last reports counted)
         return self.exit_code
 
     def _loop(self, keeper: SourceKeeper, mailbox: FrameMailbox | None) -> None:

@@ -9,8 +9,12 @@ held for their send time (``[link] msp_report_delay_ms``), how late they were wr
     python -m firmware_py.pacing_check                       # automatic delay (the default)
     python -m firmware_py.pacing_check --delay-ms 0          # each report as processed
     python -m firmware_py.pacing_check --threading single    # the loop of files and flights
+    python -m firmware_py.pacing_check --pad python          # padding that holds the GIL
 
-No hardware: the numbers are this machine's scheduling, the engine's padding is a sleep.
+No hardware: the numbers are this machine's scheduling. The padding is a sleep by default,
+which lets go of Python's GIL as the engine's OpenCL waits do; ``--pad python`` spins in
+Python instead, holding it as pure-Python processing would, which the report writer thread
+must then wait for (at most the daemon's 0.5 ms switch interval at a time).
 """
 
 from __future__ import annotations
@@ -27,13 +31,16 @@ import numpy as np
 
 from .config import Config
 from .daemon import Daemon
+from .links.base import MAX_REPORT_DELAY_MS
 
 
 class _PaddedEngine:
     """The daemon's estimator with each update padded to a random time (s)."""
 
-    def __init__(self, inner, low_s: float, high_s: float, spike_s: float, seed: int = 5):
+    def __init__(self, inner, low_s: float, high_s: float, spike_s: float, *, hold_gil: bool = False,
+                 seed: int = 5):
         self.inner, self.low_s, self.high_s, self.spike_s = inner, low_s, high_s, spike_s
+        self.hold_gil = hold_gil
         self.rng = np.random.default_rng(seed)
         self.calls = 0
 
@@ -43,7 +50,8 @@ class _PaddedEngine:
         until = time.perf_counter() + (self.spike_s if spike else self.rng.uniform(self.low_s, self.high_s))
         field = self.inner.update(image)
         while time.perf_counter() < until:
-            time.sleep(0.0002)
+            if not self.hold_gil:
+                time.sleep(0.0002)
         return field
 
     def __getattr__(self, name):
@@ -60,7 +68,7 @@ def _drain(fd: int, stop: threading.Event) -> None:
 
 
 def measure(*, delay_ms: float | None, threading_mode: str, frames: int, engine_ms: tuple[float, float],
-            spike_ms: float, fps: float = 100.0, rate_hz: float = 50.0) -> dict:
+            spike_ms: float, hold_gil: bool = False, fps: float = 100.0, rate_hz: float = 50.0) -> dict:
     """Run the daemon once; returns the written reports' intervals (ms), their write times
     after due (ms, held reports) and the link's chosen delay (ms) and late count."""
     with tempfile.TemporaryDirectory() as folder:
@@ -83,7 +91,7 @@ def measure(*, delay_ms: float | None, threading_mode: str, frames: int, engine_
 
         def estimator(width, height):
             inner = Daemon(config)._default_estimator(width, height)
-            return _PaddedEngine(inner, engine_ms[0] / 1e3, engine_ms[1] / 1e3, spike_ms / 1e3)
+            return _PaddedEngine(inner, engine_ms[0] / 1e3, engine_ms[1] / 1e3, spike_ms / 1e3, hold_gil=hold_gil)
 
         daemon = Daemon(config, estimator_factory=estimator)
         try:
@@ -112,18 +120,30 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=600, help="frames processed (100 fps; default 600)")
     ap.add_argument("--engine-ms", default="2-8", help="range of an update's time, ms (default 2-8)")
     ap.add_argument("--spike-ms", type=float, default=11.0, help="every 100th update's time, ms (default 11)")
+    ap.add_argument("--pad", default="sleep", choices=("sleep", "python"),
+                    help="padding that lets go of the GIL (sleep, default) or holds it (python)")
     a = ap.parse_args(argv)
     try:
         low, high = (float(v) for v in a.engine_ms.split("-"))
+    except ValueError:
+        ap.error(f"--engine-ms {a.engine_ms!r}: expected a range of ms, e.g. 2-8")
+    try:
         delay = None if a.delay_ms == "auto" else float(a.delay_ms)
     except ValueError:
-        ap.error(f"--engine-ms {a.engine_ms!r} / --delay-ms {a.delay_ms!r}: expected e.g. 2-8 and auto, 0 or 12")
+        delay = -1.0
+    if delay is not None and not 0 <= delay <= MAX_REPORT_DELAY_MS:
+        ap.error(f"--delay-ms {a.delay_ms!r}: expected auto or 0..{MAX_REPORT_DELAY_MS:g} ms")
+    if not 0 <= low <= high or a.spike_ms < 0 or a.frames < 100:
+        ap.error("--engine-ms low-high with 0 <= low <= high, --spike-ms >= 0, --frames >= 100")
     r = measure(delay_ms=delay, threading_mode=a.threading, frames=a.frames, engine_ms=(low, high),
-                spike_ms=a.spike_ms)
+                spike_ms=a.spike_ms, hold_gil=a.pad == "python")
     gaps, period = r["gaps_ms"], r["period_ms"]
+    if len(gaps) < 2:
+        print(f"only {r['reports']} reports after the first quarter: too few to measure (more --frames)")
+        return 1
     print(f"delay {a.delay_ms} ({r['delay_ms']:.1f} ms at the end), {a.threading}, update {a.engine_ms} ms "
-          f"(every 100th {a.spike_ms:g} ms): {r['reports']} reports after the first quarter, "
-          f"{r['late_reports']} late")
+          f"(every 100th {a.spike_ms:g} ms, padded by {a.pad}): {r['reports']} reports after the first "
+          f"quarter, {r['late_reports']} late")
     p5, p50, p95 = np.percentile(gaps, [5, 50, 95])
     print(f"intervals between written reports: p5 {p5:.2f} p50 {p50:.2f} p95 {p95:.2f} ms; "
           f"{np.mean(np.abs(gaps - period) <= 0.5):.0%} within 0.5 ms of {period:g} ms")

@@ -409,7 +409,7 @@ def test_a_reset_that_keeps_failing_ends_the_daemon_for_systemd_to_restart(monke
     def source():
         return _GapSource(make_source("synthetic:u=2,v=1", width=96, height=72, fps=100), at=30, gap_us=2_000_000)
 
-    with pytest.raises(RuntimeError, match=r"engine errors in 0\.[3-9] s without a flow between them, the last in "
+    with pytest.raises(RuntimeError, match=r"engine errors in \d+\.\d s without a flow between them, the last in "
                                            r"the reset on frame \d+: RuntimeError: clEnqueueFillBuffer"):
         run_daemon(_engine_config(("source", "realtime", True)), frames=1000, estimator_factory=factory,
                    source_factory=source)

@@ -4,6 +4,7 @@ import math
 import os
 import struct
 import sys
+import time
 
 import pytest
 
@@ -364,8 +365,8 @@ def test_the_automatic_report_delay_follows_the_processing_time():
     for _ in range(5):
         assert report(60_000) is None
     assert pacer.delay_us == AUTO_MAX_US and pacer.late == 8
-    pacer.written(due_us=1_000_000, written_us=1_001_500)
-    pacer.written(due_us=1_000_000, written_us=1_002_500)  # (a stalled writer: late as well)
+    pacer.written(after_due_us=1_500)
+    pacer.written(after_due_us=2_500)  # (a stalled writer: late as well)
     assert pacer.late == 9
     # A recording read faster than it was captured: no capture clock to keep to.
     assert report(1_000, period_us=20_000) is not None
@@ -379,10 +380,10 @@ def test_the_automatic_report_delay_follows_the_processing_time():
 
 
 @pytest.mark.parametrize("with_port", [True, False], ids=["port", "no-port"])
-def test_the_loop_is_woken_for_a_held_report_only_when_it_can_be_written(tmp_path, with_port):
-    """A report held for its send time tells the frame loop when to wake (``wake_in_s``); with
-    no port to write it to (or a full kernel buffer) it does not, or the loop would spin on a
-    due report it cannot send."""
+def test_the_writer_is_woken_for_a_held_report_only_when_it_can_be_written(tmp_path, with_port):
+    """A report held for its send time tells the daemon's report writer when to wake
+    (``wake_in_s``); with no port to write it to (or a full kernel buffer) it does not, or
+    the writer would spin on a due report it cannot send."""
     from firmware_py.links import FlowSample
 
     peer = PtyPeer(tmp_path / "ttyFC") if with_port else None
@@ -405,3 +406,27 @@ def test_the_loop_is_woken_for_a_held_report_only_when_it_can_be_written(tmp_pat
         link.close()
         if peer is not None:
             peer.close()
+
+
+def test_a_held_report_behind_one_that_is_not_still_wakes_the_writer(peer):
+    """A message queued at once while the kernel's buffer was full (a late report, a
+    keep-alive) sits at the head with held reports behind it: once the port takes data
+    again it is due now, or the writer slept while the reports behind it fell overdue."""
+    from firmware_py.links.serial_port import OutgoingMessage
+
+    link = open_link(LinkConfig(port=peer.path, baud=115200, autopilot="inav"))
+    try:
+        now = host_us()
+        # (queued without a pump: as if the kernel's buffer had been full then)
+        link.transport.enqueue(OutgoingMessage(name="late", data=b"x"))
+        link.transport.enqueue(OutgoingMessage(name="held", data=b"y", not_before_host_us=now - 5_000))
+        assert link.wake_in_s(now) == 0.0
+        link.send_due(now)
+        got, deadline = b"", time.monotonic() + 2.0
+        while len(got) < 2 and time.monotonic() < deadline:
+            got += peer.read()
+            time.sleep(0.01)
+        assert link.queued_messages == 0 and got == b"xy"
+        assert link.wake_in_s(now) is None
+    finally:
+        link.close()

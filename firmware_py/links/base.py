@@ -466,20 +466,21 @@ class FlowLink:
         keep-alive counts from the last submit, not from the frame's capture. Never blocks,
         never raises.
         """
-        try:
-            with self._lock:
+        with self._lock:
+            try:
                 self._submit(sample, host_us() if now_host_us is None else int(now_host_us))
-        except Exception:  # noqa: BLE001 - the frame loop must survive any link bug
-            self._internal_error("submit")
+            except Exception:  # noqa: BLE001 - the frame loop must survive any link bug
+                self._internal_error("submit")
 
     def service(self, now_host_us: int) -> None:
         """Host-time housekeeping: reopen, read, heartbeats, blind keep-alive, flush.
 
-        Call it every frame and while blind. Never blocks, never raises.
+        Call it every frame and while blind. Never waits for the port (only for another
+        thread's call to finish), never raises.
         """
-        try:
-            now = int(now_host_us)
-            with self._lock:
+        with self._lock:
+            try:
+                now = int(now_host_us)
                 self.transport.service(now)
                 data = self.transport.read_available(now_us=now)
                 if data:
@@ -487,8 +488,8 @@ class FlowLink:
                 self._periodic(now)
                 self._blind_keepalive(now)
                 self.transport.pump(now)
-        except Exception:  # noqa: BLE001
-            self._internal_error("service")
+            except Exception:  # noqa: BLE001
+                self._internal_error("service")
 
     def set_focal_length_px(self, focal_length_px: float) -> None:
         """Convert pixels to angles with this focal length (px) from the next report on:
@@ -502,23 +503,29 @@ class FlowLink:
         """Seconds from ``now_host_us`` until a report held for its send time is due (0:
         due; call :meth:`send_due` then); None: none held that could be written then (see
         :meth:`SerialTransport.next_due_us`). Never raises."""
-        try:
-            with self._lock:
+        with self._lock:
+            try:
                 due = self.transport.next_due_us()
-        except Exception:  # noqa: BLE001
-            self._internal_error("wake_in_s")
-            return None
+            except Exception:  # noqa: BLE001
+                self._internal_error("wake_in_s")
+                return None
         return None if due is None else max(0.0, (due - int(now_host_us)) / 1e6)
+
+    @property
+    def queued_messages(self) -> int:
+        """Messages waiting to be written (a partly written one included)."""
+        with self._lock:
+            return self.transport.queued_messages
 
     def send_due(self, now_host_us: int) -> None:
         """Write the reports held for their send time that are due at ``now_host_us`` (host
         µs), from any thread: the daemon's report writer calls it at :meth:`wake_in_s`,
-        whatever the frame loop is doing. Never blocks, never raises."""
-        try:
-            with self._lock:
+        whatever the frame loop is doing. Never waits for the port, never raises."""
+        with self._lock:
+            try:
                 self.transport.pump(int(now_host_us))
-        except Exception:  # noqa: BLE001
-            self._internal_error("send_due")
+            except Exception:  # noqa: BLE001
+                self._internal_error("send_due")
 
     def stats_snapshot(self) -> dict:
         """A copy of :attr:`stats` (its per-type counts too) taken while no other thread
@@ -761,10 +768,8 @@ class FlowLink:
         not_before = self._send_at(*paced_on, now)
         for name, data, fields in messages:
             fields.setdefault("frames", interval.frame_count)
-            if not_before is not None:
-                # (held: its send time after the capture its latency counts from, so that
-                # latency_us - paced_us is how late it was written)
-                fields["paced_us"] = not_before - (paced_on[0] if capture_host_us is None else capture_host_us)
+            if not_before is not None:  # (held: its send time after the capture it is paced on)
+                fields["paced_us"] = not_before - paced_on[0]
             self.transport.enqueue(OutgoingMessage(name=name, data=data, queued_host_us=now,
                                                    capture_host_us=capture_host_us, fields=fields,
                                                    flow=True, marker=interval.quality == 0,

@@ -114,8 +114,8 @@ class MspLink(FlowLink):
         return due
 
     def _on_sent(self, message, host_us: int, latency_us: int | None) -> None:
-        if message.not_before_host_us is not None:
-            self.pacer.written(message.not_before_host_us, host_us)
+        if message.written_after_due_us is not None:
+            self.pacer.written(message.written_after_due_us)
             self.stats["late_reports"] = self.pacer.late
         super()._on_sent(message, host_us, latency_us)
 

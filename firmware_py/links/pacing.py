@@ -14,7 +14,8 @@ recent ready times (capture to the report's queueing: delivery, waiting, engine,
 :data:`AUTO_QUANTILE` of the last :data:`AUTO_WINDOW` reports plus :data:`AUTO_MARGIN_US`),
 never more than :data:`AUTO_MAX_US`. Each change of the delay moves one arrival by the
 change: it is raised at once when frames get slower (or each report would be late), and
-lowered by :data:`AUTO_STEP_DOWN_US` a report once the slow ones have left the window. A report
+lowered by :data:`AUTO_STEP_DOWN_US` a report once the quantile is well below it (fewer
+than 1 % of the window as slow as before). A report
 ready after its due time goes out at once, and one written more than :data:`LATE_US` after
 it (a stalled writer) is counted too: both arrive late, as every report did before.
 Frames that do not come in real time (a recording read as fast as it decodes, a test
@@ -99,9 +100,9 @@ class ReportPacer:
             return None
         return due
 
-    def written(self, due_us: int, written_us: int) -> None:
-        """A held report due at ``due_us`` was written at ``written_us`` (host µs)."""
-        if written_us - due_us > LATE_US:
+    def written(self, after_due_us: int) -> None:
+        """A held report was written ``after_due_us`` µs after its due time."""
+        if after_due_us > LATE_US:
             self.late += 1
 
     def _learn(self, ready_us: int) -> None:
@@ -114,6 +115,6 @@ class ReportPacer:
         if wanted > self._auto_us:  # slower: follow at once, or every report is late
             self._auto_us = wanted
         elif self._auto_us - wanted > AUTO_MARGIN_US:
-            # (the quantile is of the whole window: the slow frames have left it, this is no
-            # lull between two slow spells)
+            # (the quantile is of the whole window: the slow frames have (nearly) left it,
+            # this is no lull between two slow spells)
             self._auto_us = max(wanted, self._auto_us - AUTO_STEP_DOWN_US)

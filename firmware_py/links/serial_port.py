@@ -118,6 +118,9 @@ class OutgoingMessage:
     not_before_host_us : int or None
         Host time before which it is not written, µs (a report paced on the capture clock,
         :mod:`firmware_py.links.pacing`); the messages behind it wait too. None: at once.
+    written_after_due_us : int or None
+        Set when a held message is handed to the OS: how long after ``not_before_host_us``,
+        µs, on the clock of the :meth:`SerialTransport.pump` call that wrote it.
     """
 
     name: str
@@ -128,6 +131,7 @@ class OutgoingMessage:
     flow: bool = False
     marker: bool = False
     not_before_host_us: int | None = None
+    written_after_due_us: int | None = None
 
 
 class SerialTransport:
@@ -407,6 +411,8 @@ class SerialTransport:
                 if due is not None and (now if now_us is None else now_us) < due:
                     return  # (paced: the caller wakes at next_due_us())
                 message = self._queue.popleft()
+                if due is not None:
+                    message.written_after_due_us = (now if now_us is None else now_us) - due
                 if now - message.queued_host_us > self.max_age_us:
                     self._count_drop(message, stale=True)
                     continue
@@ -450,15 +456,20 @@ class SerialTransport:
         """Let the queued messages held for their send time go with the next :meth:`pump`."""
         for message in self._queue:
             message.not_before_host_us = None
+            message.fields.pop("paced_us", None)  # (not held after all)
 
     def next_due_us(self) -> int | None:
         """Host time (µs) at which :meth:`pump` has a held message to write, None if none
-        is held (nothing queued, the next one goes at once) or if it could not be written
-        then anyway (no port, the kernel's buffer full: the caller's usual polling serves)."""
+        is held or if it could not be written then anyway (no port, a message partly written,
+        the kernel's buffer full: the caller's usual polling serves). A message at the head
+        that is not held (queued while the kernel's buffer was full) is due now (0): held
+        ones may wait behind it."""
         if self._current is not None or not self._queue or self._fd is None:
             return None
         if self._kernel_backlog() > self.kernel_limit_bytes:
             return None
+        if self._queue[0].not_before_host_us is None:
+            return 0 if any(m.not_before_host_us is not None for m in self._queue) else None
         return self._queue[0].not_before_host_us
 
     @property
