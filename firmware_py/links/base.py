@@ -205,8 +205,9 @@ class LinkConfig:
         MSP only: each report goes on the wire this long after its newest frame's capture,
         ms, so that INAV (which divides a report's counts by the time since the previous one
         arrived) sees the capture intervals, not the processing time's jitter; None:
-        automatic (just above the recent processing times, :mod:`firmware_py.links.pacing`);
-        0: each report as soon as it is processed.
+        automatic (just above the recent times from capture to report,
+        :mod:`firmware_py.links.pacing`); 0: each report as soon as it is processed. The
+        caller writes held reports when due (:attr:`FlowLink.paces_reports`).
     """
 
     port: str | None = None
