@@ -34,8 +34,10 @@ from .daemon import Daemon
 from .links.base import MAX_REPORT_DELAY_MS
 
 
-class _PaddedEngine:
-    """The daemon's estimator with each update padded to a random time (s)."""
+class PaddedEngine:
+    """The daemon's estimator with each update padded to a random time between ``low_s``
+    and ``high_s`` (every 100th to ``spike_s``), s: a board whose processing time varies
+    from frame to frame (also the daemon tests')."""
 
     def __init__(self, inner, low_s: float, high_s: float, spike_s: float, *, hold_gil: bool = False,
                  seed: int = 5):
@@ -91,7 +93,7 @@ def measure(*, delay_ms: float | None, threading_mode: str, frames: int, engine_
 
         def estimator(width, height):
             inner = Daemon(config)._default_estimator(width, height)
-            return _PaddedEngine(inner, engine_ms[0] / 1e3, engine_ms[1] / 1e3, spike_ms / 1e3, hold_gil=hold_gil)
+            return PaddedEngine(inner, engine_ms[0] / 1e3, engine_ms[1] / 1e3, spike_ms / 1e3, hold_gil=hold_gil)
 
         daemon = Daemon(config, estimator_factory=estimator)
         try:

@@ -355,26 +355,6 @@ def test_frames_a_paced_flight_moves_past_count_as_dropped():
     assert daemon.stats.dropped >= 12 and daemon.stats.skipped == 0
 
 
-class _UnevenEngine:
-    """The daemon's estimator, each update padded to 2-8 ms (every 100th to 11 ms): a
-    board whose processing time varies from frame to frame."""
-
-    def __init__(self, inner):
-        self.inner, self.calls = inner, 0
-        self.rng = np.random.default_rng(5)
-
-    def update(self, image):
-        self.calls += 1
-        until = time.perf_counter() + (0.011 if self.calls % 100 == 50 else self.rng.uniform(0.002, 0.008))
-        field = self.inner.update(image)
-        while time.perf_counter() < until:
-            time.sleep(0.0002)
-        return field
-
-    def __getattr__(self, name):
-        return getattr(self.inner, name)
-
-
 @pytest.mark.parametrize("threading_mode", ["capture-thread", "single"])
 def test_inav_reports_leave_a_fixed_time_after_their_frames_capture(tmp_path, caplog, threading_mode):
     """INAV divides a report's counts by the time since the previous report arrived, so the
@@ -388,6 +368,7 @@ def test_inav_reports_leave_a_fixed_time_after_their_frames_capture(tmp_path, ca
     import logging
 
     from firmware_py.daemon import Daemon
+    from firmware_py.pacing_check import PaddedEngine
 
     caplog.set_level(logging.INFO, logger="emdflowd")
     log_path = tmp_path / "sent.csv"
@@ -398,7 +379,8 @@ def test_inav_reports_leave_a_fixed_time_after_their_frames_capture(tmp_path, ca
                                ("daemon", "log_interval_s"): 1.0})
 
     def estimator(width, height):
-        return _UnevenEngine(Daemon(config)._default_estimator(width, height))
+        # (2-8 ms an update, every 100th 11 ms)
+        return PaddedEngine(Daemon(config)._default_estimator(width, height), 0.002, 0.008, 0.011)
 
     code, daemon, _ = run_daemon(config, frames=400, estimator_factory=estimator)
     assert code == 0
