@@ -491,6 +491,26 @@ class EngineParams:
         """Frames needed before the slowest channel can fire (3 for the paper's model)."""
         return 3 * self.max_delay
 
+    def calibration_settings(self) -> dict:
+        """The settings besides the channels that shape which scales fire at a given speed,
+        and so the summary's calibration tables: the prefilter, the templates, brightness
+        compensation, the threshold mode and that mode's own settings (the fixed
+        ``threshold``; the adaptive one's gain and bounds; the local one's also its tile).
+        A table measured with other values still reads the detections, less accurately:
+        :func:`emdflow.summary.calibration_mismatch` names the ones that differ. Plain
+        Python values, keyed by field name."""
+        settings = {"prefilter_size": self.prefilter_size, "sharp_templates": self.sharp_templates,
+                    "brightness_compensation": self.brightness_compensation,
+                    "threshold_mode": self.threshold_mode}
+        if self.threshold_mode == "fixed":
+            settings["threshold"] = self.threshold
+        else:  # (the fixed threshold serves only a first frame without contrast samples)
+            settings.update(adaptive_gain=self.adaptive_gain, threshold_min=self.threshold_min,
+                            threshold_max=self.threshold_max)
+        if self.threshold_mode == "local":
+            settings["threshold_tile"] = self.threshold_tile
+        return settings
+
     def evidence_row_step_for(self, height: int) -> int:
         """Rows between the rows whose detections feed the summary histogram.
 

@@ -236,7 +236,10 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import functools
+import json
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -245,7 +248,8 @@ from .field import FlowField
 from .params import GRADIENT_CLASS_STEPS, HISTOGRAM_BINS, ORIENTATION_BINS, EngineParams, _is_real, _is_whole
 from .reference import STAT_CONTRAST, STAT_FIRST_CHANGED
 
-__all__ = ["FlowSummary", "summarize", "SummaryOptions", "calibration_for", "prepare"]
+__all__ = ["FlowSummary", "summarize", "SummaryOptions", "calibration_for", "calibration_mismatch", "CalibrationWarning",
+           "prepare"]
 
 
 def _compiled_csr_product():
@@ -816,6 +820,62 @@ def calibration_for(params: EngineParams, ground: str = "edges"):
     return None if best is None else best[1]["_path"]
 
 
+class CalibrationWarning(UserWarning):
+    """:func:`summarize` reads a calibration table measured with other engine settings than
+    the field's (:func:`calibration_mismatch`): its error is then larger and unmeasured."""
+
+
+def table_settings(table: dict) -> dict:
+    """The engine settings (:meth:`EngineParams.calibration_settings`) a calibration table
+    was measured with: as it records them (``engine_settings``, written by
+    ``calibrate_summary fit``), else those of the model it names (the paper's when it names
+    none) with its threshold mode — the shipped tables were all fitted on the recipe's
+    flights, which fly the models' defaults."""
+    if "engine_settings" in table:
+        return dict(json.loads(str(table["engine_settings"])))
+    from .params import MODELS
+
+    model = str(table["model"]) if "model" in table else "paper"
+    options = dict(MODELS.get(model, {}))
+    if "threshold_mode" in table:
+        options["threshold_mode"] = str(table["threshold_mode"])
+    return EngineParams(**options).calibration_settings()
+
+
+def calibration_mismatch(params: EngineParams, ground: str = "edges") -> dict:
+    """The settings in which ``params`` differ from those the calibration table of
+    :func:`calibration_for` was measured with, as ``{name: (table's, params')}``; empty when
+    they agree or when no table serves these channels (the summary is then the IoC fit).
+
+    The table still serves (it is chosen by channel set, diagonal evidence and, where there
+    is a choice, threshold mode), but each of these settings moves the mix of scales that
+    fires at a given speed: on the evaluation's random flights at 320×240 the paper's model
+    reads 6.3 % / 1.9° median error with the threshold of its table (5), 9.9 % / 2.2° at
+    threshold 10 and 10.7 % / 2.8° without the prefilter (README, "Calibration settings").
+    A different threshold mode is reported alone (its settings do not compare)."""
+    path = calibration_for(params, ground)
+    if path is None:
+        return {}
+    table = next(t for t in _load_calibrations() if t["_path"] == path)
+    theirs, ours = table_settings(table), params.calibration_settings()
+    if theirs.get("threshold_mode") != ours["threshold_mode"]:
+        return {"threshold_mode": (theirs.get("threshold_mode"), ours["threshold_mode"])}
+    return {name: (theirs.get(name), value) for name, value in ours.items() if theirs.get(name) != value}
+
+
+@functools.lru_cache(maxsize=64)
+def _warn_if_uncalibrated(params: EngineParams) -> None:
+    """Warn once per parameter set (the cache) that its edge table was measured with other
+    settings (:func:`calibration_mismatch`)."""
+    mismatch = calibration_mismatch(params)
+    if mismatch:
+        differ = ", ".join(f"{name} {given!r} (table: {table!r})" for name, (table, given) in mismatch.items())
+        warnings.warn(f"summarize(): the calibration table {calibration_for(params).name} was measured with "
+                      f"other engine settings than the field's: {differ}; the summary's error with these "
+                      "settings is larger and unmeasured (README, \"Calibration settings\")",
+                      CalibrationWarning, stacklevel=3)
+
+
 def _model_for(params: EngineParams, opts: SummaryOptions, ground: str = "edges"):
     """The likelihood model for these channels and ground, or None when they have no table."""
     # What the model depends on: the table (chosen by channels, diagonal evidence and
@@ -1327,6 +1387,8 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
         if _looks_static(field, opts):
             return FlowSummary(0.0, 0.0, int(round(255 * q_texture * 0.75)), n, True, 1.0, 0.0)
         return FlowSummary(detections=n)
+    if opts.likelihood:
+        _warn_if_uncalibrated(params)
     model = _model_of(field, opts, "lines") if opts.ground == "lines" else None
     on_lines = model is not None
     if model is None:  # the edge table (also for ground "lines" without a line table)

@@ -28,6 +28,7 @@ import statistics
 import sys
 import threading
 import time
+import warnings
 from collections import deque
 from typing import Callable
 
@@ -777,6 +778,23 @@ class Daemon:
         log.info("engine %s %dx%d ready in %.2f s%s", self.config.engine.backend, self.width, self.height,
                  time.monotonic() - t0, _on_device(self.estimator))
         self._warn_of_sparse_evidence()
+        if params is not None:
+            self._warn_of_uncalibrated_settings(params)
+
+    def _warn_of_uncalibrated_settings(self, params) -> None:
+        """``[engine]`` settings the summary's calibration table was not measured with
+        (``threshold`` with the paper's model, ``threshold_mode``, ``threshold_tile``): the
+        summary still runs, less accurately and with a quality calibrated for the table's
+        settings, so this is said once here, in the daemon's log, and not again by
+        :func:`emdflow.summarize` on the first frame."""
+        mismatch = emdflow.summary.calibration_mismatch(params)
+        if mismatch:
+            differ = ", ".join(f"{name} = {given!r} (table: {table!r})" for name, (table, given) in mismatch.items())
+            log.warning("[engine] %s: the %s model's summary table %s was measured with other settings; "
+                        "the summary's error is larger and unmeasured with these (README, \"Calibration "
+                        "settings\")", differ, self.config.engine.model,
+                        emdflow.summary.calibration_for(params).name)
+        warnings.filterwarnings("ignore", category=emdflow.summary.CalibrationWarning)
 
     def _warn_of_sparse_evidence(self) -> None:
         """An ``[engine] evidence_row_step`` that samples too few rows of the processed frame

@@ -13,9 +13,12 @@ import signal
 import socket
 import subprocess
 import time
+import warnings
 
 import numpy as np
 import pytest
+
+import emdflow
 
 from firmware_py.config import Config
 from firmware_py.sources import make_source
@@ -191,6 +194,31 @@ def test_an_evidence_row_step_that_starves_the_summary_is_named_at_start(tmp_pat
     code, _, msgs = _run_inprocess(tmp_path, factory, frames=30, settings=[("engine", "evidence_row_step", 4)])
     assert code == 0 and "evidence_row_step" not in caplog.text
     assert any(m.quality for m in msgs if m.get_type() == "OPTICAL_FLOW")
+
+
+def test_engine_settings_the_summary_table_was_not_measured_with_are_named_at_start(tmp_path, caplog):
+    """[engine] threshold = 8 with the paper's model: the summary reads the table measured
+    at 5, less accurately, which nothing said. The start-up log names the key, both values
+    and the table, once (not again from summarize); the model's own settings say nothing."""
+    caplog.set_level(logging.INFO, logger="emdflowd")
+    emdflow.summary._warn_if_uncalibrated.cache_clear()
+
+    def factory():
+        return make_source("synthetic:u=2,v=1", width=96, height=72, fps=100)
+
+    with warnings.catch_warnings(record=True) as shown:
+        warnings.simplefilter("always")
+        code, _, msgs = _run_inprocess(tmp_path, factory, frames=30,
+                                       settings=[("engine", "model", "paper"), ("engine", "threshold", 8.0)])
+    assert code == 0
+    assert not [w for w in shown if issubclass(w.category, emdflow.summary.CalibrationWarning)]
+    assert ("[engine] threshold = 8.0 (table: 5.0): the paper model's summary table "
+            "summary_calibration_diagonal.npz was measured with other settings") in caplog.text
+    assert caplog.text.count("measured with other settings") == 1
+    assert any(m.quality for m in msgs if m.get_type() == "OPTICAL_FLOW")  # (it still flies)
+    caplog.clear()
+    code, _, _ = _run_inprocess(tmp_path, factory, frames=30, settings=[("engine", "model", "paper")])
+    assert code == 0 and "measured with other settings" not in caplog.text
 
 
 def test_extra_values_over_msp_are_named_and_not_computed(tmp_path, caplog, monkeypatch):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import time
@@ -569,6 +570,7 @@ def test_the_smallest_axis_angle_and_extreme_quality_options_still_summarize():
         assert s.quality == 1 and math.isfinite(s.flow_x), option
 
 
+@pytest.mark.filterwarnings("ignore::emdflow.summary.CalibrationWarning")  # (other thresholds on purpose)
 def test_one_likelihood_model_serves_every_threshold_and_sampling():
     """The summary's model depends on the channels, the diagonal evidence and the
     threshold mode: estimators that differ in threshold, evidence row step or prefilter
@@ -1220,6 +1222,8 @@ def test_fit_writes_a_line_ground_table(monkeypatch, tmp_path):
     assert z["prob"].shape[0] == 3 and np.array_equal(z["prob"][0], z["prob"][1])
     assert np.array_equal(z["prob"][2], z["prob"][1])
     assert z["misfit_baseline"].shape == z["misfit_speeds"].shape
+    # flights that do not record their settings flew the model's (what summary compares)
+    assert json.loads(str(z["engine_settings"])) == EngineParams(**EXTENDED).calibration_settings()
     with pytest.raises(SystemExit, match="no calibration frames in contrast class 0"):
         cs.main(["fit", "--model", "extended", "--write", str(data)])
 
@@ -1315,3 +1319,99 @@ def test_prepare_lays_out_the_tables_before_the_first_frame(monkeypatch):
     for t in range(params.history_frames + 2):
         s = summarize(est.update(flight.render(t)))
     assert s.quality > 0
+
+
+def test_calibration_mismatch_names_the_settings_a_table_was_not_measured_with():
+    """A table is chosen by channels, diagonal evidence and threshold mode; the threshold,
+    the prefilter and the other settings that move the mix of scales at a given speed were
+    not compared, so a researcher's ``threshold=8`` was read with the table of 5 in silence.
+    :func:`calibration_mismatch` names them, with the table's value and the engine's."""
+    from emdflow.summary import calibration_mismatch, table_settings
+
+    local = dict(EXTENDED, threshold_mode="local")
+    for params in (PARAMS, EngineParams(), EXT_PARAMS, EngineParams(**EXTENDED), EngineParams(**local)):
+        assert calibration_mismatch(params) == {}
+    assert calibration_mismatch(EngineParams(threshold=8.0)) == {"threshold": (5.0, 8.0)}
+    assert calibration_mismatch(EngineParams(prefilter_size=7, sharp_templates=True)) == {
+        "prefilter_size": (11, 7), "sharp_templates": (False, True)}
+    # the adaptive threshold's own settings count, not the fixed one (a first frame's only)
+    assert calibration_mismatch(EngineParams(**EXTENDED, threshold=8.0)) == {}
+    assert calibration_mismatch(EngineParams(**EXTENDED, adaptive_gain=0.6, threshold_min=3.0)) == {
+        "adaptive_gain": (0.4, 0.6), "threshold_min": (1.5, 3.0)}
+    assert calibration_mismatch(EngineParams(**local, threshold_tile=128)) == {"threshold_tile": (64, 128)}
+    # another mode's table (the only one for these channels): the mode alone is named
+    assert calibration_mismatch(EngineParams(**dict(EXTENDED, threshold_mode="fixed"))) == {
+        "threshold_mode": ("adaptive", "fixed")}
+    assert calibration_mismatch(EngineParams(threshold_mode="adaptive")) == {"threshold_mode": ("fixed", "adaptive")}
+    # no table for the channels: the summary is the IoC fit, nothing to compare
+    assert calibration_mismatch(EngineParams(scales=(1, 3, 5), threshold=8.0)) == {}
+    # a table that records its settings (calibrate_summary fit) is read by them
+    recorded = {"engine_settings": np.array('{"threshold_mode": "fixed", "threshold": 8.0}')}
+    assert table_settings(recorded) == {"threshold_mode": "fixed", "threshold": 8.0}
+    assert table_settings({"model": np.array("extended"), "threshold_mode": np.array("local")}) == \
+        EngineParams(**local).calibration_settings()
+
+
+def test_summarize_warns_once_when_its_table_was_measured_with_other_settings():
+    """The summary still runs with another threshold (less accurately), and says so once
+    per parameter set with a :class:`CalibrationWarning` naming the setting; the table's
+    own settings say nothing."""
+    import warnings
+
+    from emdflow.summary import CalibrationWarning
+
+    emdflow.summary._warn_if_uncalibrated.cache_clear()  # (once per parameter set and process)
+    params = EngineParams(threshold=7.25, diagonal_evidence=False)
+    hist = model_histogram((3.0, 1.0), seed=5)
+    with pytest.warns(CalibrationWarning, match=r"threshold 7\.25 \(table: 5\.0\)"):
+        first = summarize(_field(hist, params=params))
+    assert first.quality > 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert summarize(_field(hist, params=params)) == first
+        summarize(_field(hist))
+
+
+def test_calibration_flights_record_the_engine_settings(tmp_path):
+    """``collect`` stores the engine settings its flights were flown with; ``fit`` writes
+    them into the table (what :func:`emdflow.summary.calibration_mismatch` compares), from
+    files that agree; files flown with different settings do not make one table."""
+    from emdflow.tools import calibrate_summary as cs
+
+    out = tmp_path / "flights.npz"
+    cs.collect(1, str(out), frames=4, width=64, height=48, textures=("moon",))
+    with np.load(out) as d:
+        flown = {k: d[k] for k in d.files}
+    assert json.loads(str(flown["engine_settings"])) == EngineParams().calibration_settings()
+    assert cs.stored_engine_settings([out, out], "paper") == EngineParams().calibration_settings()
+    other = tmp_path / "other.npz"
+    np.savez(other, **dict(flown, engine_settings=np.array(json.dumps(
+        EngineParams(threshold=8.0).calibration_settings()))))
+    assert cs.stored_engine_settings([other], "paper")["threshold"] == 8.0
+    with pytest.raises(SystemExit, match="flown with different engine settings"):
+        cs.stored_engine_settings([out, other], "paper")
+    older = tmp_path / "older.npz"  # (made before the settings were recorded: the model's)
+    np.savez(older, **{k: v for k, v in flown.items() if k != "engine_settings"})
+    assert cs.stored_engine_settings([older, out], "paper") == EngineParams().calibration_settings()
+
+
+def test_evaluation_flies_other_engine_settings(monkeypatch, tmp_path, capsys):
+    """``calibrate_summary evaluate --engine-opt threshold=8`` flies that threshold with the
+    table measured at 5 (how README's "Calibration settings" table is made): the stored
+    flights record it, the label names it, scoring warns that the table was measured with
+    other settings; stored flights are scored with the settings they were flown with."""
+    from emdflow.summary import CalibrationWarning
+    from emdflow.tools import calibrate_summary as cs
+
+    monkeypatch.setitem(cs.MODEL_EVALUATION_SPEEDS, "paper", (3,))
+    emdflow.summary._warn_if_uncalibrated.cache_clear()  # (once per parameter set and process)
+    out = tmp_path / "flights.npz"
+    with pytest.warns(CalibrationWarning, match=r"threshold 8\.0 \(table: 5\.0\)"):
+        cs.main(["evaluate", "--size", "64x48", "--frames", "1", "--textures", "moon",
+                 "--engine-opt", "threshold=8", "--save", str(out)])
+    assert "paper model, threshold=8.0, over moon" in capsys.readouterr().out
+    with np.load(out) as d:
+        assert json.loads(str(d["engine_settings"]))["threshold"] == 8.0
+    with pytest.raises(SystemExit):
+        cs.main(["evaluate", "--data", str(out), "--engine-opt", "threshold=8"])
+    assert "--engine-opt: --data scores stored flights" in capsys.readouterr().err

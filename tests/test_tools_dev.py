@@ -132,6 +132,11 @@ def cs(monkeypatch):
     (["evaluate", "--size", "96x72", "--textures", "gravel", "--contrast", "-1"], "--contrast -1"),
     (["evaluate", "--size", "96x72", "--textures", "gravel", "--contrast", "inf"], "--contrast inf"),
     (["evaluate", "--size", "96x72", "--textures", "gravel", "--drift", "-5"], "--drift -5"),
+    (["evaluate", "--size", "96x72", "--textures", "gravel", "--engine-opt", "thresh=8"], "--engine-opt"),
+    (["evaluate", "--size", "96x72", "--textures", "gravel", "--engine-opt", "prefilter_size=4"],
+     "prefilter_size=4"),
+    (["evaluate", "--size", "96x72", "--textures", "gravel", "--engine-opt", "sharp_templates=maybe"],
+     "'maybe' is not a value for sharp_templates"),
 ])
 def test_calibrate_summary_refuses_bad_options(cs, tmp_path, capsys, argv, option):
     if argv[0] == "collect":

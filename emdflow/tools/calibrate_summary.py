@@ -151,6 +151,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import math
 import sys
 import time
@@ -222,6 +223,25 @@ def stored_threshold_mode(paths, model: str) -> str:
     if len(modes) > 1:
         raise SystemExit(f"the calibration files mix threshold modes: {sorted(modes)}")
     return modes.pop() if modes else own
+
+
+def stored_engine_settings(paths, model: str) -> dict:
+    """The engine settings (:meth:`EngineParams.calibration_settings`) the stored flights of
+    ``paths`` were flown with; a file that does not record them (made before they were
+    recorded) flew the defaults of ``model`` with its threshold mode. The files must
+    agree: a table is measured with one set."""
+    found = {}
+    for path in paths:
+        with np.load(path) as z:
+            if "engine_settings" in z.files:
+                settings = json.loads(str(z["engine_settings"]))
+            else:
+                settings = model_params(model, threshold_mode=stored_threshold_mode([path], model)).calibration_settings()
+        found.setdefault(json.dumps(settings, sort_keys=True), []).append(str(path))
+    if len(found) > 1:
+        raise SystemExit("the calibration files were flown with different engine settings: "
+                         + "; ".join(f"{', '.join(files)}: {settings}" for settings, files in found.items()))
+    return json.loads(found.popitem()[0]) if found else model_params(model).calibration_settings()
 
 
 def _stored_shape(path, name: str) -> tuple[int, ...]:
@@ -405,7 +425,8 @@ def collect(flights: int, out: str, frames: int = 7, seed: int = 20240601, width
     with open(out, "wb") as fh:  # exactly ``out`` (a path without .npz would get one appended)
         np.savez_compressed(fh, hist=np.array(hists), flow=np.array(flows), stats=np.array(stats),
                             texture=np.array(names), model=np.array(model),
-                            threshold_mode=np.array(est.params.threshold_mode))
+                            threshold_mode=np.array(est.params.threshold_mode),
+                            engine_settings=np.array(json.dumps(est.params.calibration_settings())))
     print(f"wrote {len(hists)} frames to {out}", file=sys.stderr)
 
 
@@ -594,6 +615,7 @@ def _frame_chunks(data, model: str, params, samples: int, chunk: int = FIT_CHUNK
 def fit_main(data, write, model="paper", ground="edges"):
     diagonal = has_diagonal(data)
     mode = stored_threshold_mode(data, model)  # (a table for the mode its flights were flown with)
+    settings = stored_engine_settings(data, model)  # (and the other settings it depends on)
     params = model_params(model, diagonal, mode)
     samples = params.contrast_samples(320, 240)  # collect renders 320x240
     u_offset, u_count = U_GRID[model]
@@ -658,6 +680,8 @@ def fit_main(data, write, model="paper", ground="edges"):
             extra["gradient_class_steps"] = np.asarray(GRADIENT_CLASS_STEPS, np.int64)
         # (the paper's table too: the summary prefers a table of the engine's threshold mode)
         extra.update(threshold_mode=np.array(params.threshold_mode))
+        # the settings besides the channels that the table depends on (summary.calibration_mismatch)
+        extra.update(engine_settings=np.array(json.dumps(settings)))
         if model != "paper":
             extra.update(channels=np.array(params.channels, np.int64), model=np.array(model))
         if edges:
@@ -782,7 +806,7 @@ def render_evaluation(offset: float = 0.0, random_set: bool = False, frames: int
                       backend: str = "opencl", width=320, height=240, model: str = "paper",
                       contrast: float = 1.0, drift: float = 0.0, evidence_row_step: int = 0,
                       noise: float = 2.0, textures=EVALUATION_TEXTURES, diagonal: bool = True,
-                      threshold_mode: str | None = None):
+                      threshold_mode: str | None = None, engine_options=None):
     """Flights over the evaluation textures: the model's speeds (9 for the paper's model,
     10 from 0.25 px/frame for the extended one) × 4 textures × 8 directions (multiples of
     45° plus ``offset`` radians, or random directions), sensor noise σ = ``noise`` gray
@@ -790,13 +814,16 @@ def render_evaluation(offset: float = 0.0, random_set: bool = False, frames: int
     and an exposure ramp of ``drift`` (relative) across each whole flight, ``frames``
     ready frames each; ``evidence_row_step`` as in :class:`emdflow.EngineParams` (0:
     automatic); ``textures`` the grounds flown over (the evaluation set unless told: the
-    calibration set measures how well a table fits its own ground). Returns the
-    histograms, statistics and true flows."""
+    calibration set measures how well a table fits its own ground); ``engine_options``
+    other engine settings than the model's (:func:`engine_option_values`: what the summary
+    reads with a table measured with the model's). Returns the histograms, statistics and
+    true flows."""
     _checked_noise(noise, noise, f"noise={noise!r}")
     from emdflow import FlowEstimator
     from emdflow.synthetic import CameraFlight, load_texture
 
-    est = FlowEstimator(width, height, backend=backend, **model_options(model, diagonal, threshold_mode),
+    est = FlowEstimator(width, height, backend=backend,
+                        **dict(model_options(model, diagonal, threshold_mode), **(engine_options or {})),
                         evidence_row_step=evidence_row_step)
     warm = est.params.history_frames
     speeds = MODEL_EVALUATION_SPEEDS[model]
@@ -829,7 +856,8 @@ def render_evaluation(offset: float = 0.0, random_set: bool = False, frames: int
     return dict(hist=np.array(hists), stats=np.array(stats), flow=np.array(flows),
                 shape=np.array([height, width]), frame_index=warm + 1, model=np.array(model),
                 flight_frames=np.array(frames), texture=np.array(names),
-                threshold_mode=np.array(est.params.threshold_mode))
+                threshold_mode=np.array(est.params.threshold_mode),
+                engine_settings=np.array(json.dumps(est.params.calibration_settings())))
 
 
 def score(data, options=None, out=print):
@@ -898,9 +926,11 @@ def _stored_fields(data):
 
     h, w = (int(x) for x in data["shape"])
     codes = np.zeros((h, w), np.int8)
-    params = EngineParams(**model_options(recorded_model(data),
-                                          np.asarray(data["hist"]).shape[1] == 4,
-                                          str(data["threshold_mode"]) if "threshold_mode" in data else None))
+    options = model_options(recorded_model(data), np.asarray(data["hist"]).shape[1] == 4,
+                            str(data["threshold_mode"]) if "threshold_mode" in data else None)
+    if "engine_settings" in data:  # (flown with other settings: the summary says if its table was not)
+        options.update(json.loads(str(data["engine_settings"])))
+    params = EngineParams(**options)
     fields = [FlowField(codes, codes, st, hi, params, int(data["frame_index"]))
               for hi, st in zip(data["hist"], data["stats"])]
     return fields, np.asarray(data["flow"], np.float64)
@@ -1068,13 +1098,45 @@ def summary_option_values(items) -> dict:
     return out
 
 
+#: ``--engine-opt`` keys of ``evaluate``: the settings a table depends on besides the
+#: channels (``EngineParams.calibration_settings``; the threshold mode has its own option)
+ENGINE_OPTIONS = {"threshold": float, "prefilter_size": int, "sharp_templates": bool,
+                  "brightness_compensation": bool, "adaptive_gain": float, "threshold_min": float,
+                  "threshold_max": float, "threshold_tile": int}
+
+
+def engine_option_values(items) -> dict:
+    """``--engine-opt KEY=VALUE`` items as ``FlowEstimator`` keywords of
+    :data:`ENGINE_OPTIONS`, each value converted to its type (ValueError naming what is
+    wrong; the value's range is EngineParams' to check)."""
+    out = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep or key not in ENGINE_OPTIONS:
+            raise ValueError(f"{item!r}: expected KEY=VALUE with KEY one of {', '.join(ENGINE_OPTIONS)}")
+        kind = ENGINE_OPTIONS[key]
+        try:
+            if kind is bool:
+                if text.lower() not in ("true", "false", "1", "0"):
+                    raise ValueError
+                value = text.lower() in ("true", "1")
+            else:
+                value = kind(text)
+        except ValueError:
+            raise ValueError(f"{item!r}: {text!r} is not a value for {key}") from None
+        out[key] = value
+    return out
+
+
 def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: str = "opencl",
              save: str | None = None, data: str | None = None, model: str = "paper",
              contrast: float = 1.0, drift: float = 0.0, options=None, evidence_row_step: int = 0,
              width: int = 320, height: int = 240, noise: float = 2.0,
-             textures=EVALUATION_TEXTURES, diagonal: bool = True, threshold_mode: str | None = None):
+             textures=EVALUATION_TEXTURES, diagonal: bool = True, threshold_mode: str | None = None,
+             engine_options=None):
     """Render (or load with ``data``) the evaluation flights (``width`` × ``height`` frames,
-    over ``textures``; ``diagonal``: with the diagonal detectors' evidence, the default) and
+    over ``textures``; ``diagonal``: with the diagonal detectors' evidence, the default;
+    ``engine_options``: other engine settings, :func:`engine_option_values`) and
     :func:`score` them.
 
     Raises
@@ -1096,7 +1158,8 @@ def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: 
         flights = render_evaluation(offset, random_set, frames, backend, width, height, model=model,
                                     contrast=contrast, drift=drift,
                                     evidence_row_step=evidence_row_step, noise=noise,
-                                    textures=textures, diagonal=diagonal, threshold_mode=threshold_mode)
+                                    textures=textures, diagonal=diagonal, threshold_mode=threshold_mode,
+                                    engine_options=engine_options)
         label = "random directions" if random_set else f"offset {offset} rad"
         if (width, height) != (320, 240):
             label += f", {width}x{height}"
@@ -1113,6 +1176,8 @@ def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: 
             label += ", without diagonal evidence"
         if threshold_mode is not None:
             label += f", {threshold_mode} threshold"
+        for key, value in (engine_options or {}).items():
+            label += f", {key}={value}"
         if tuple(textures) != EVALUATION_TEXTURES:
             label += f", over {','.join(textures)}"
         if save:
@@ -1227,6 +1292,10 @@ def main(argv=None):
                    help="a SummaryOptions field for the summary (repeatable), e.g. the former "
                         "quality weights: --summary-opt overdispersion=0.7 --summary-opt "
                         "disagreement_weight=0.5")
+    e.add_argument("--engine-opt", action="append", default=[], metavar="KEY=VALUE",
+                   help="fly other engine settings than the model's (repeatable; "
+                        f"{', '.join(ENGINE_OPTIONS)}): the summary still reads the table measured "
+                        "with the model's, e.g. --engine-opt threshold=10")
     e.add_argument("--textures", default=",".join(EVALUATION_TEXTURES),
                    help="comma-separated grounds of the flights (default: the evaluation set, "
                         "which the calibration never saw; the calibration set "
@@ -1332,9 +1401,17 @@ def main(argv=None):
         textures = tuple(a.textures.split(","))
         _check_textures(ap, textures, a.textures)
         try:
+            engine_options = engine_option_values(a.engine_opt)
+            # (the range of each value, as the flights would meet it)
+            EngineParams(**dict(model_options(a.model, a.diagonal_evidence, a.threshold_mode), **engine_options))
+        except ValueError as exc:
+            ap.error(f"--engine-opt: {exc}")
+        if engine_options and a.data:
+            ap.error("--engine-opt: --data scores stored flights, flown with the settings they were stored with")
+        try:
             evaluate(a.offset, a.random, a.frames, a.backend, a.save, a.data, a.model, a.contrast,
                      a.drift, options, a.evidence_row_step, width, height, a.noise, textures,
-                     a.diagonal_evidence, a.threshold_mode)
+                     a.diagonal_evidence, a.threshold_mode, engine_options)
         except ToolError as exc:
             ap.error(str(exc))
 
