@@ -44,6 +44,7 @@ class _WireReader:
         self.parser.robust_parsing = True
         self.counts: dict[str, int] = {}
         self.last_flow = None
+        self.previous_flow = None  # (the message before: where the last one's span began)
         self.bytes = 0
 
     def poll(self, timeout: float) -> None:
@@ -62,7 +63,7 @@ class _WireReader:
                 continue
             self.counts[name] = self.counts.get(name, 0) + 1
             if name == "OPTICAL_FLOW":
-                self.last_flow = msg
+                self.previous_flow, self.last_flow = self.last_flow, msg
 
 
 def _fmt(x: float, width: int = 6) -> str:
@@ -240,11 +241,20 @@ def _fall_back_without_opencl(config, out) -> bool:
     return False
 
 
-def _truth_rate(daemon, truth_source) -> tuple[float, float]:
-    prev = daemon._prev
-    if truth_source is None or prev is None:
+def _truth_rate(daemon, truth_source, reader) -> tuple[float, float]:
+    """The flight's true rate over the frames the last flow message spans (a synthetic
+    frame's capture time is ``index / fps``: its ``time_usec`` names its newest frame, the
+    message before it where it began): a report of several frames averages a turning
+    flight's flow over them, and its newest frame is older than the daemon's."""
+    flow = reader.last_flow
+    if truth_source is None or flow is None or not daemon.fps:
         return math.nan, math.nan
-    u, v = truth_source.truth(prev.index)
+    newest = round(flow.time_usec * daemon.fps / 1e6)
+    before = reader.previous_flow
+    oldest = round(before.time_usec * daemon.fps / 1e6) + 1 if before is not None else newest
+    frames = range(max(1, min(oldest, newest)), max(1, newest) + 1)
+    u = sum(truth_source.truth(i)[0] for i in frames) / len(frames)
+    v = sum(truth_source.truth(i)[1] for i in frames) / len(frames)
     scale = daemon.fps / daemon.focal_length_px
     return u * scale, v * scale
 
@@ -258,7 +268,7 @@ def _row(t, processed, msgs, reader, daemon, truth_source, latencies) -> str:
     fx = flow.flow_rate_x if flow is not None else math.nan
     fy = flow.flow_rate_y if flow is not None else math.nan
     q = flow.quality if flow is not None else 0
-    tx, ty = _truth_rate(daemon, truth_source)
+    tx, ty = _truth_rate(daemon, truth_source, reader)
     return (f"{t:5.1f} {processed:8d} {msgs:6d} {hb:3d} {p50 / 1000:8.2f} / {p99 / 1000:7.2f}  "
             f"{_fmt(fx, 9)},{_fmt(fy, 9)}  {_fmt(tx, 7)},{_fmt(ty, 7)}  {q:7d}")
 

@@ -46,7 +46,8 @@ def test_a_video_file_that_ends_stops_the_daemon_after_its_last_frame(tmp_path, 
     a loop (``[source] loop = true`` replays a file)."""
     clip = write_video(tmp_path / "short.avi", flight_frames(12, width=96, height=72), fps=50)
     # the paper's model: its 3-frame history fits a 12-frame clip (the extended model needs 12)
-    config = _config(tmp_path, f'model = "paper"\n[daemon]\nthreading = "{threading}"\n')
+    # (a report every frame: ArduPilot's default is 17 a second)
+    config = _config(tmp_path, f'model = "paper"\n[daemon]\nthreading = "{threading}"\n[link]\nmessage_rate_hz = 100.0\n')
     pty = PtyPair()
     drain = Drain(pty.master)
     try:
@@ -105,9 +106,11 @@ def test_a_recording_without_one_readable_frame_is_an_error(tmp_path):
 
 def _run_inprocess(tmp_path, factory, frames, heartbeat_rate_hz=1.0, settings=()):
     """Run the daemon in this process on 96x72 frames of ``factory``; ``settings``:
-    further ``(section, key, value)`` to set. Returns (exit code, daemon, MAVLink messages)."""
+    further ``(section, key, value)`` to set. Returns (exit code, daemon, MAVLink messages).
+    A report every frame (ArduPilot's default is 17 a second), so each frame's fate shows."""
     config = Config()
     config.set("link", "heartbeat_rate_hz", heartbeat_rate_hz)
+    config.set("link", "message_rate_hz", 100.0)
     config.set("source", "uri", "synthetic:u=2,v=1")
     config.set("source", "width", 96)
     config.set("source", "height", 72)

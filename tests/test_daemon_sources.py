@@ -1007,6 +1007,7 @@ def test_daemon_flies_through_a_corrupt_v4l2_frame_without_reopening():
     config.set("optics", "focal_length_px", 100.0)
     config.set("engine", "backend", engine_backend())
     config.set("engine", "model", "paper")
+    config.set("link", "message_rate_hz", 100.0)  # (a report every frame: the default is 17 a second)
     config.set("daemon", "blind_after_s", 1.0)   # a reopen (>= 0.5 s back-off) shows in reopens
     made = []
     code, daemon, data = run_daemon(config, frames=40, source_factory=lambda: made.append(factory()) or made[-1])

@@ -96,9 +96,11 @@ def test_slow_engine_gets_real_flow_through():
     """0.3 s per frame (more than blind_after_s): the link judges blindness from the last
     submit, so no keep-alive comes between frames and the reports keep their quality."""
     # the synthetic source stamps its frames 10 ms apart however slowly they are made: one
-    # report per 10 ms frame is ArduPilot's message set (PX4's reports span >= 1/70 s)
+    # report per 10 ms frame is ArduPilot's message set at 100 a second (PX4's reports span
+    # >= 1/70 s; ArduPilot's default 17 a second would span six frames)
     config = _config("synthetic:u=2,v=1", autopilot="ardupilot",
-                     settings={("source", "width"): 96, ("source", "height"): 72})
+                     settings={("source", "width"): 96, ("source", "height"): 72,
+                               ("link", "message_rate_hz"): 100.0})
 
     def slow(width, height):
         real = emdflow.FlowEstimator(width, height, backend=config.engine.backend,

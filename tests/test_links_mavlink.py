@@ -100,13 +100,16 @@ def test_message_set_rate_and_byte_budget(peer, autopilot, expected, absent, bau
 
 
 def test_rate_chosen_from_baud():
-    assert make_link_no_port(autopilot="ardupilot", baud=57600).message_rate_hz == 74
+    # OPTICAL_FLOW alone at most 17 Hz by default: ArduPilot's EKF3 takes a flow sample only
+    # 50 ms after the one before (test_ardupilot_ekf3_fuses_every_default_report)
+    assert make_link_no_port(autopilot="ardupilot", baud=57600).message_rate_hz == 17
+    assert make_link_no_port(autopilot="ardupilot", baud=57600, message_rate_hz=74).message_rate_hz == 74
     assert make_link_no_port(autopilot="both", baud=57600).message_rate_hz == 33
     # OPTICAL_FLOW_RAD at most 70 Hz by default: PX4 merges what comes faster than its
     # SENS_FLOW_RATE (70 Hz) and averages the qualities (test_links_timing)
     assert make_link_no_port(autopilot="both", baud=115200).message_rate_hz == 67
     assert make_link_no_port(autopilot="px4", baud=921600).message_rate_hz == 70
-    assert make_link_no_port(autopilot="ardupilot", baud=921600).message_rate_hz == 100
+    assert make_link_no_port(autopilot="ardupilot", baud=921600).message_rate_hz == 17
     assert make_link_no_port(autopilot="px4", baud=921600, message_rate_hz=25).message_rate_hz == 25
 
 
@@ -153,7 +156,9 @@ def test_extra_values_are_budgeted_after_the_flow():
     """The extras (4 NAMED_VALUE_FLOATs at 5 Hz: 600 bytes/s) take what the flow leaves:
     all of it from 19200 baud on, less at 9600, nothing where even 0.5 rounds/s do not fit."""
     full = make_link_no_port(autopilot="ardupilot", baud=57600, extra_values=True)
-    assert (full.extras_rate_hz, full.message_rate_hz) == (5.0, 61)        # (3456 - 21 - 600) / 46
+    assert (full.extras_rate_hz, full.message_rate_hz) == (5.0, 17)        # (3456 - 21 - 600) / 46 = 61 > 17
+    assert make_link_no_port(autopilot="ardupilot", baud=57600, extra_values=True,
+                             message_rate_hz=61).extras_rate_hz == 5.0
     assert make_link_no_port(autopilot="ardupilot", baud=19200, extra_values=True).extras_rate_hz == 5.0
     thin = make_link_no_port(autopilot="ardupilot", baud=9600, extra_values=True)
     assert (thin.extras_rate_hz, thin.message_rate_hz) == (0.7, 10)        # was 5 Hz and 1 flow message/s

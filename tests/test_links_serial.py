@@ -451,7 +451,7 @@ def test_a_reopened_port_gets_nothing_from_while_it_was_away(tmp_path, autopilot
         assert link.stats["reopen_count"] == 1
         reopened_at_us = feeder.t_us   # the last frame before the reopen
         sink = bytearray(peer.read())
-        feeder.frames(30, flow_x=1.0, peer=peer, sink=sink)
+        feeder.frames(60, flow_x=1.0, peer=peer, sink=sink)  # (ArduPilot's reports: 17 a second)
         assert link.stats["blind_reports"] == blind_before
         after = strict_parse(bytes(sink))
         assert after[0].get_type() == "HEARTBEAT"

@@ -18,6 +18,7 @@ import math
 import os
 import sys
 
+import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
@@ -80,6 +81,23 @@ class FlightController:
                                       "used": m.quality > 0 and rate is not None, "rate": rate,
                                       "integration_time_us": m.integration_time_us, "time_usec": m.time_usec,
                                       "integrated": (m.integrated_x, m.integrated_y)})
+
+    def ekf3_fused(self, task_hz: float = 200.0, phase_us: int = 1_234) -> list[dict]:
+        """The good OPTICAL_FLOW messages ArduPilot's EKF3 stores: AP_OpticalFlow's task
+        (``task_hz``, Copter's 200 Hz) hands a message over at its first run after the
+        arrival, and ``NavEKF3_core::writeOptFlowMeas`` drops a sample less than 50 ms
+        (``sensorIntervalMin_ms``, whole ms of IMU time) after the last one it took, a
+        quality-0 one included (it counts before the quality is looked at)."""
+        period = 1e6 / task_hz
+        fused, last_ms = [], None
+        for m in self.messages:
+            run_ms = int((phase_us + math.ceil((m["at"] - phase_us) / period) * period) // 1000)
+            if last_ms is not None and run_ms - last_ms < 50:
+                continue
+            last_ms = run_ms
+            if m["quality"] > 0:
+                fused.append(m)
+        return fused
 
     def px4_published(self, sens_flow_rate_hz: float = 70.0) -> list[dict]:
         """What PX4's sensors module (``VehicleOpticalFlow``) makes of the OPTICAL_FLOW_RAD
@@ -358,8 +376,9 @@ def test_inav_reads_the_true_rate_however_long_each_frame_takes(peer, delay_ms):
 
 def test_extra_values_follow_their_frames_flow_message(peer):
     """NAMED_VALUE_FLOATs are queued after the frame's OPTICAL_FLOW: at 115200 baud four of
-    them would delay it by ~10 ms."""
-    link = make_link(peer, "ardupilot", extra_values=True)
+    them would delay it by ~10 ms. (A report every frame, so that every extras round has
+    its frame's flow message to follow: by default ArduPilot's are 17 a second.)"""
+    link = make_link(peer, "ardupilot", extra_values=True, message_rate_hz=100.0)
     fc = FlightController(peer, "ardupilot")
     extras = (("expansion", 0.1), ("ttc_s", -1.0), ("balanceLR", 0.0), ("balanceTB", 0.0))
     start = host_us()
@@ -761,3 +780,39 @@ def test_extra_values_go_on_after_the_capture_clock_restarts(peer):
     assert len(before) >= 4 * 4
     assert len(after) >= 4 * 4                     # 5 rounds/s of 4 values over the second phase
     assert after[0].time_boot_ms == 100            # the first frame of the restarted clock
+
+
+@pytest.mark.parametrize("interval_us", [10_000, 8_333, 16_667, 33_333])
+def test_ardupilot_ekf3_fuses_every_default_report(peer, interval_us):
+    """ArduPilot's EKF3 stores a flow sample only 50 ms after the last one it took: of the
+    former default's 100 reports a second (at 115200 baud and up) it fused one in five or
+    six, each spanning one frame. By default the reports are now at most 17 a second: on
+    cameras of 120, 100, 60 and 30 fps with jittery capture and processing, EKF3 fuses
+    every good report, each over at least 50 ms of frames."""
+    rng = np.random.default_rng(interval_us)
+    seen = {}
+    for rate in (None, 100.0):
+        link = make_link(peer, "ardupilot", **({} if rate is None else {"message_rate_hz": rate}))
+        fc = FlightController(peer, "ardupilot")
+        start = host_us()
+        frames, t = [], start
+        for i in range(int(3e6 / interval_us)):  # 3 s of frames, ±1 ms capture jitter, 2-6 ms engine
+            dt = interval_us + int(rng.integers(-1000, 1001)) if i else 0
+            t += dt
+            u, v = (c * dt / 1e6 for c in FLOW)
+            frames.append((t + int(rng.integers(2000, 6001)),
+                           FlowSample(timestamp_us=t, capture_host_us=t, flow_x=u, flow_y=v, quality=200 if i else 0)))
+        frames.sort(key=lambda item: item[0])
+        try:
+            drive(link, fc, frames, start_us=start, end_us=frames[-1][0] + STEP_US)
+        finally:
+            link.close()
+        good = [m for m in fc.messages if m["quality"] > 0]
+        seen[rate] = (len(fc.ekf3_fused()), len(good),
+                      [b["time_usec"] - a["time_usec"] for a, b in zip(good, good[1:])])
+    fused, good, spans = seen[None]
+    assert good >= 3 * 14 and fused == good, (fused, good)
+    assert min(spans) >= 50_000, min(spans)
+    fused, good, _ = seen[100.0]
+    if interval_us < 20_000:  # (a report every frame: the EKF3 takes one in five or six, three or four at 60 fps)
+        assert fused <= 0.35 * good, (fused, good)

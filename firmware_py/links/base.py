@@ -184,7 +184,8 @@ class LinkConfig:
         ``sensor_id`` field of the flow messages.
     message_rate_hz : float or None
         Flow messages per second; None chooses the highest rate keeping the line ≤ 60 % busy,
-        capped at 100 Hz (OPTICAL_FLOW alone), 70 Hz (with OPTICAL_FLOW_RAD, whose reports
+        capped at 17 Hz (OPTICAL_FLOW alone: what ArduPilot's EKF3 fuses, see
+        ``mavlink.ARDUPILOT_EKF3_RATE_HZ``), 70 Hz (with OPTICAL_FLOW_RAD, whose reports
         also span at least 1/70 s: PX4's SENS_FLOW_RATE) or 50 Hz (MSP). Never more than one
         message per frame, never fewer than :data:`MIN_MESSAGE_RATE_HZ` (ArduPilot's EKF3 and
         INAV need a flow sample every < 200 ms).

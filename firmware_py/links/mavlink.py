@@ -65,6 +65,17 @@ MESSAGE_SETS = {
 PX4_SENS_FLOW_RATE_HZ = 70.0
 PX4_MIN_REPORT_SPAN_US = math.ceil(1e6 / PX4_SENS_FLOW_RATE_HZ)
 
+#: ArduPilot's EKF3 stores an optical flow sample only 50 ms or more after the previous one
+#: it took (``NavEKF3_core::writeOptFlowMeas``, ``sensorIntervalMin_ms``; a quality-0 one
+#: counts), checked when its 200 Hz flow task hands the message over: of 100 reports a
+#: second it fuses one in five, each spanning 10 ms of frames. At most 17 a second, every
+#: report is at least 57 ms of frames (a quarter frame's tolerance under 1/17 s) and 50 ms
+#: after the one before even when the task's 5 ms step and some jitter fall against it: the
+#: EKF fuses as many reports as before, each averaging five or six frames instead of one,
+#: and dates them closer to their middle (it takes each to be 50 ms + EK3_FLOW_DELAY old,
+#: the middle of a PX4Flow's 100 ms). The default cap of ``autopilot = "ardupilot"``.
+ARDUPILOT_EKF3_RATE_HZ = 17.0
+
 HEARTBEAT_TYPE = mavlink2.MAV_TYPE_ONBOARD_CONTROLLER  # 18: no MAV_TYPE for a flow sensor
 
 _INT16_MAX = 32767
@@ -156,7 +167,7 @@ class MavlinkLink(FlowLink):
         return super()._reserved_bytes_per_s() + extras
 
     def _default_rate_cap(self) -> float:
-        return PX4_SENS_FLOW_RATE_HZ if self.min_report_span_us else 100.0
+        return PX4_SENS_FLOW_RATE_HZ if self.min_report_span_us else ARDUPILOT_EKF3_RATE_HZ
 
     def _choose_extras_rate(self) -> float:
         """Extra-value rounds per second: :data:`EXTRAS_RATE_HZ` where the budget has room
