@@ -238,6 +238,11 @@ class Config:
                 "it as a rangefinder reading whenever no distance sensor has reported for 1 s, a false "
                 "height for a vehicle whose height changes; leave it out unless the camera's height "
                 "cannot change")
+        if self.link.ground_distance_m is not None and self.link_autopilot() == "inav":
+            notes.append(
+                f"{where}: [link] ground_distance_m = {self.link.ground_distance_m:g} with INAV: MSP2_SENSOR_"
+                "OPTIC_FLOW has no distance field and no rangefinder message is sent, so INAV never sees "
+                "it; it needs its own rangefinder for flow position hold")
         return notes
 
     def focal_length_px(self, width: int, default: float | None) -> float:

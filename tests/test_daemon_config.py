@@ -314,12 +314,14 @@ def test_autopilot_and_protocol_that_fit_together(tmp_path):
 
 def test_ground_distance_with_px4_is_a_caution(tmp_path):
     """PX4's EKF2 takes the flow message's distance as a rangefinder reading when no
-    distance sensor reports: a fixed ground distance is valid but worth a warning there,
-    and only there."""
-    for autopilot, warned in (("px4", True), ("both", True), ("ardupilot", False), ("inav", False)):
+    distance sensor reports: a fixed ground distance is valid but worth a warning there.
+    INAV never sees it (MSP's flow message has no distance; it was accepted in silence):
+    a warning too. ArduPilot shows it only (the message's ground_distance)."""
+    for autopilot, warned in (("px4", "EKF2 takes"), ("both", "EKF2 takes"), ("ardupilot", None),
+                              ("inav", "INAV never sees it")):
         config = load_config(_write(tmp_path, f"[link]\nautopilot = '{autopilot}'\nground_distance_m = 0.3\n"))
         notes = config.cautions()
-        assert bool(notes) == warned, autopilot
+        assert bool(notes) == bool(warned), autopilot
         if warned:
-            assert "ground_distance_m = 0.3" in notes[0] and "rangefinder" in notes[0]
+            assert "ground_distance_m = 0.3" in notes[0] and "rangefinder" in notes[0] and warned in notes[0]
     assert load_config(_write(tmp_path, "[link]\nautopilot = 'px4'\n")).cautions() == []

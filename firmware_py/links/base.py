@@ -171,7 +171,8 @@ class LinkConfig:
     protocol : {None, "mavlink", "msp"}
         None derives it from ``autopilot`` (inav → msp, others → mavlink); given, it must be
         the autopilot's (:data:`AUTOPILOT_PROTOCOLS`: a pair that cannot work is refused).
-        ``"msp"`` also serves Betaflight (as ``"inav"``).
+        (Not Betaflight: its MSP flow reading needs an MT rangefinder on the same link and
+        scales the counts its own way; README, "Notes on the spec".)
     focal_length_px : float
         Focal length in pixels at the processed resolution.
     mounting_rotation_deg : {0, 90, 180, 270}

@@ -1,5 +1,6 @@
-"""MSP v2 link: MSP2_SENSOR_OPTIC_FLOW (0x1F02) for INAV (opflow_hardware = MSP), Betaflight
-(as ``inav``). Not ArduPilot: see :data:`firmware_py.links.base.MSP_ARDUPILOT`.
+"""MSP v2 link: MSP2_SENSOR_OPTIC_FLOW (0x1F02) for INAV (opflow_hardware = MSP). Not
+ArduPilot (see :data:`firmware_py.links.base.MSP_ARDUPILOT`), nor Betaflight (its MSP flow
+reading needs an MT rangefinder on the link and scales the counts its own way).
 
 Frame: ``$`` ``X`` ``<``, flags u8 (0), function u16 LE, payload size u16 LE, payload,
 CRC8/DVB-S2 (poly 0xD5, init 0) over flags … payload. Payload (9 bytes): quality u8,
