@@ -221,6 +221,8 @@ def test_a_relative_port_that_exists_here_is_named_absolutely(tmp_path, monkeypa
         assert port_problem("ttyV0") == ("is a relative path (to the working directory, / under systemd); "
                                          f"give it as {tmp_path / 'ttyV0'}")
         assert port_problem(str(tmp_path / "ttyV0")) is None
+        # a stray space from a config file: never appears, was retried for ever
+        assert port_problem(str(tmp_path / "ttyV0") + " ") == "has leading or trailing whitespace; a device path has none"
     finally:
         pty.close()
 

@@ -23,6 +23,10 @@ def test_example_config_loads_and_lists_every_key():
     config = load_config(EXAMPLE)
     assert config.source.uri == "v4l2:/dev/video0"
     assert config.link.port == "/dev/serial0"
+    # its camera has no lens given: one must be set (it shipped a 60° lens's 277 px active,
+    # which switched that check off for whoever only edited the uri and the port)
+    with pytest.raises(ConfigError, match="is a camera: give"):
+        config.focal_length_px(320, None)
     text = EXAMPLE.read_text()
     for section, cls in SECTIONS.items():
         assert re.search(rf"^\[{section}\]", text, re.M), section

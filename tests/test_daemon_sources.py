@@ -580,6 +580,9 @@ def test_bad_uris_are_explained():
     for uri in ("usb:0", "v4l2:", "v4l2:camera", "depthai:RGB", "synthetic:u=fast", "video:"):
         with pytest.raises(ValueError):
             parse_uri(uri)
+    # a stray space from a config file: a camera that never appears, retried for ever before
+    with pytest.raises(ValueError, match="trailing whitespace"):
+        parse_uri("v4l2:/dev/video0 ")
     with pytest.raises(SourceError, match="expected v4l2:/dev/videoN"):
         make_source("webcam")
 

@@ -48,6 +48,9 @@ def port_problem(port: str) -> str | None:
     opening a serial port raises DTR, which resets some flight controllers."""
     import stat
 
+    if port != port.strip():
+        # (a stray space from a config file: "/dev/ttyUSB0 " never appears, retried for ever)
+        return "has leading or trailing whitespace; a device path has none"
     if "://" in port:
         # (pyserial's URLs, socket:// or rfc2217://, open through serial_for_url, which this
         # link does not use: such a port failed to open and was retried for ever)

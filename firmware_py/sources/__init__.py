@@ -58,6 +58,9 @@ def parse_uri(uri: str) -> SourceSpec:
         raise ValueError(f"source {uri!r}: {scheme}: needs a device or path after the colon")
     if scheme == "v4l2" and not (target.isdecimal() or target.startswith("/dev/")):
         raise ValueError(f"source {uri!r}: expected v4l2:/dev/videoN or v4l2:N")
+    if scheme == "v4l2" and target != target.strip():
+        # ("/dev/video0 " is never plugged in: it was retried for ever as an absent camera)
+        raise ValueError(f"source {uri!r}: the device has trailing whitespace; a device path has none")
     if scheme == "depthai" and target.upper() not in ("CAM_B", "CAM_C"):
         raise ValueError(f"source {uri!r}: expected depthai:CAM_B or depthai:CAM_C (OAK mono cameras)")
     if scheme == "synthetic":

@@ -1,4 +1,6 @@
-"""``v4l2:/dev/videoN`` or ``v4l2:N`` — a UVC or CSI camera through OpenCV's V4L2 backend.
+"""``v4l2:/dev/videoN`` or ``v4l2:N`` — a UVC camera (or another plain V4L2 capture node)
+through OpenCV's V4L2 backend. Not a Raspberry Pi CSI camera under libcamera (Raspberry Pi
+OS Bookworm), whose nodes OpenCV cannot read as a capture device.
 
 Latency choices: the driver keeps only ``buffer_count`` buffers (default 2) so a frame never
 waits behind older ones; the raw buffer is taken without OpenCV's RGB conversion and turned
