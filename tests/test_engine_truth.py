@@ -107,6 +107,7 @@ def _density(flow, frames=8, **kw):
     return np.mean([(f.u_detections + f.v_detections) / (W * H) for f in fields]), fields
 
 
+@pytest.mark.filterwarnings("ignore::emdflow.summary.CalibrationWarning")  # (another setting on purpose)
 def test_adaptive_threshold_keeps_density_when_contrast_drops_4x():
     full, _ = _density((3.0, 1.0))
     fixed_low, _ = _density((3.0, 1.0), contrast=0.25)
@@ -145,6 +146,7 @@ def test_a_global_brightness_step_is_discounted_not_taken_for_motion(step):
             assert math.hypot(s.flow_x - 3.0, s.flow_y - 1.0) < 0.6
 
 
+@pytest.mark.filterwarnings("ignore::emdflow.summary.CalibrationWarning")  # (another setting on purpose)
 def test_brightness_compensation_keeps_a_drifting_static_scene_static():
     """A hovering camera over a static scene while the exposure drifts by 30 %: without
     compensation the slow channels see the drift as a change and fire; with it (the
@@ -273,6 +275,7 @@ def test_a_gain_step_is_caught_with_brightness_compensation(gain):
     assert [t for t, f in enumerate(flagged) if f] == [16, 17, 18]
 
 
+@pytest.mark.filterwarnings("ignore::emdflow.summary.CalibrationWarning")  # (another setting on purpose)
 @pytest.mark.parametrize("compensation", [False, True])
 def test_a_step_is_flagged_while_it_sits_in_the_delayed_templates(compensation):
     """A delay-D channel's templates hold a brightness step for 3D frames. Without
