@@ -249,7 +249,7 @@ from .params import GRADIENT_CLASS_STEPS, HISTOGRAM_BINS, ORIENTATION_BINS, Engi
 from .reference import STAT_CONTRAST, STAT_FIRST_CHANGED
 
 __all__ = ["FlowSummary", "summarize", "SummaryOptions", "calibration_for", "calibration_mismatch", "CalibrationWarning",
-           "prepare"]
+           "warn_if_uncalibrated", "prepare"]
 
 
 def _compiled_csr_product():
@@ -864,9 +864,12 @@ def calibration_mismatch(params: EngineParams, ground: str = "edges") -> dict:
 
 
 @functools.lru_cache(maxsize=64)
-def _warn_if_uncalibrated(params: EngineParams) -> None:
-    """Warn once per parameter set (the cache) that its edge table was measured with other
-    settings (:func:`calibration_mismatch`)."""
+def warn_if_uncalibrated(params: EngineParams) -> None:
+    """Warn once per parameter set and process (the cache) that its edge table was measured
+    with other settings (:func:`calibration_mismatch`); :func:`summarize` calls it. A caller
+    that reports the mismatch its own way (the daemon, in its log) calls it first under a
+    ``warnings.catch_warnings()`` that ignores :class:`CalibrationWarning`: the set then
+    counts as told, and the summaries stay quiet."""
     mismatch = calibration_mismatch(params)
     if mismatch:
         differ = ", ".join(f"{name} {given!r} (table: {table!r})" for name, (table, given) in mismatch.items())
@@ -1388,7 +1391,7 @@ def summarize(field: FlowField, *, options: SummaryOptions | None = None) -> Flo
             return FlowSummary(0.0, 0.0, int(round(255 * q_texture * 0.75)), n, True, 1.0, 0.0)
         return FlowSummary(detections=n)
     if opts.likelihood:
-        _warn_if_uncalibrated(params)
+        warn_if_uncalibrated(params)
     model = _model_of(field, opts, "lines") if opts.ground == "lines" else None
     on_lines = model is not None
     if model is None:  # the edge table (also for ground "lines" without a line table)

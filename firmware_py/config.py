@@ -137,7 +137,7 @@ class LinkConfigSection:
     # below this the daemon sends quality 0. Empty: 64 (extended model) or 128 (paper's)
     # for ArduPilot and for both (whose OPTICAL_FLOW ArduPilot reads), 0 for PX4 and INAV,
     # which apply their own (EKF2_OF_QMIN, 35 %)
-    min_quality: int | None = _opt(None, minimum=0, maximum=255, doc="lowest quality sent as is")
+    min_quality: int | None = _opt(None, minimum=0, maximum=255, doc="lowest quality whose flow a report uses")
     # must equal INAV's opflow_scale, or INAV's rates come out scaled by the ratio
     msp_counts_per_degree: float = _opt(10.5, minimum=0.1, maximum=1000.0,
                                         doc="MSP motion counts per degree of angular flow")
@@ -196,7 +196,8 @@ class Config:
         setattr(obj, key, value)
 
     def min_quality(self) -> int:
-        """The lowest frame quality sent as it is (below: 0): ``[link] min_quality``, else
+        """The lowest frame quality whose flow a report uses (below: left out, the report's
+        rate its other frames'; FlowSample.doubtful): ``[link] min_quality``, else
         for ArduPilot (EKF3 fuses any quality > 0) the model's band floor where the
         summary's error grows (README, "Thresholds"), else 0."""
         if self.link.min_quality is not None:

@@ -647,7 +647,7 @@ class Daemon:
         self._steps: deque[tuple[int, int]] = deque(maxlen=3)
         #: recent capture µs per source frame (step over index step): their median is the period
         self._periods_us: deque[float] = deque(maxlen=8)
-        #: frame quality below which the link gets 0 (Config.min_quality; set by run())
+        #: frame quality below which a frame is doubtful to the link (Config.min_quality; set by run())
         self.min_quality = 0
         self._processed_intervals = RecentIntervals()  # capture µs between processed frames
         self._last_frame_host_s = time.monotonic()
@@ -794,7 +794,11 @@ class Daemon:
                         "the summary's error is larger and unmeasured with these (README, \"Calibration "
                         "settings\")", differ, self.config.engine.model,
                         emdflow.summary.calibration_for(params).name)
-        warnings.filterwarnings("ignore", category=emdflow.summary.CalibrationWarning)
+        # (told here: the parameter set counts as warned, so summarize() stays quiet, without
+        # a filter on the whole process's warnings)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", emdflow.summary.CalibrationWarning)
+            emdflow.summary.warn_if_uncalibrated(params)
 
     def _warn_of_sparse_evidence(self) -> None:
         """An ``[engine] evidence_row_step`` that samples too few rows of the processed frame
@@ -870,7 +874,7 @@ class Daemon:
             if self.min_quality:
                 why = ("" if self.config.link.min_quality is not None else
                        f": the default for {self.config.link_autopilot()} with the {self.config.engine.model} model")
-                log.info("frames of quality below %d are sent with quality 0 ([link] min_quality%s)",
+                log.info("frames of quality below %d are left out of their reports ([link] min_quality%s)",
                          self.min_quality, why)
             self._warn_of_a_wide_lens()
             if self.mode == "capture-thread":
@@ -1095,11 +1099,13 @@ class Daemon:
                       *zip(("balanceLR", "balanceTB"), self._mounted_balance(cues)))
         if uneven and field.ready:  # (before, the history filling sends quality 0 anyway)
             self.stats.uneven += 1
-        # (below the floor: ArduPilot's EKF3 would fuse what the summary itself doubts)
-        quality = 0 if uneven or summary.quality < self.min_quality else summary.quality
+        quality = 0 if uneven else summary.quality
+        # (below the floor: ArduPilot's EKF3 would fuse what the summary itself doubts; the
+        # report leaves the frame out, and is quality 0 when it has too few others)
+        doubtful = 0 < quality < self.min_quality
         self.link.submit(FlowSample(timestamp_us=frame.timestamp_us, capture_host_us=frame.capture_host_us,
                                     flow_x=summary.flow_x, flow_y=summary.flow_y, quality=quality,
-                                    extras=extras), now_host_us=t2)
+                                    extras=extras, doubtful=doubtful), now_host_us=t2)
         t3 = host_us()
         self.stats.stage("engine", t1 - t0)
         self.stats.stage("summary", t2 - t1)

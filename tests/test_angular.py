@@ -139,6 +139,36 @@ def test_quality_mean_and_blind_frames():
     assert integ.take().quality == 200
 
 
+def test_doubtful_frames_are_left_out_and_the_rest_read_over_the_span():
+    """A frame below the link's quality floor (doubtful: its flow may be far off) is left
+    out of the sums, not taken as blind: the interval's angle is its other frames' mean rate
+    over the whole span, its quality their mean; fewer trusted frames than half, or a
+    one-frame interval of a doubtful frame: quality 0 (as the floor's zeroing did)."""
+    integ = FlowIntegrator(focal_length_px=400.0)
+    integ.add_frame(timestamp_us=0, flow_x_px=0, flow_y_px=0, quality=200)
+    for i, (flow, quality, doubtful) in enumerate([(1.0, 200, False), (-7.0, 30, True), (1.0, 220, False),
+                                                   (1.0, 240, False), (5.0, 40, True), (1.0, 200, False)]):
+        integ.add_frame(timestamp_us=(i + 1) * 10_000, flow_x_px=0.0, flow_y_px=flow, quality=quality,
+                        doubtful=doubtful)
+    iv = integ.take()
+    assert iv.integration_time_us == 60_000 and iv.frame_count == 6
+    assert iv.quality == 215                                   # (200 + 220 + 240 + 200) / 4
+    assert iv.integrated_y == pytest.approx(6 * 1.0 / 400.0)   # 1 px/frame over all six frames
+    assert iv.sum_v_px == pytest.approx(6.0) and iv.integrated_x == 0.0
+    # half of them trusted is enough; fewer is quality 0
+    for flags, quality in (([True, False], 200), ([True, True, False], 0), ([True], 0)):
+        for j, doubtful in enumerate(flags):
+            integ.add_frame(timestamp_us=integ.last_timestamp_us + 10_000, flow_x_px=0.0, flow_y_px=1.0,
+                            quality=50 if doubtful else 200, doubtful=doubtful)
+        assert integ.take().quality == quality, flags
+    # a blind frame still makes the interval quality 0
+    integ.add_frame(timestamp_us=integ.last_timestamp_us + 10_000, flow_x_px=0.0, flow_y_px=1.0, quality=200)
+    integ.add_frame(timestamp_us=integ.last_timestamp_us + 10_000, flow_x_px=0.0, flow_y_px=1.0, quality=50,
+                    doubtful=True)
+    integ.add_frame(timestamp_us=integ.last_timestamp_us + 10_000, flow_x_px=0.0, flow_y_px=1.0, quality=0)
+    assert integ.take().quality == 0
+
+
 def test_blind_keepalive_sample_extends_instead_of_restarting():
     integ = FlowIntegrator(focal_length_px=400.0)
     feed(integ, range(0, 200_000, 10_000), flow=(0.0, 1.0))

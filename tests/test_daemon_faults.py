@@ -204,7 +204,7 @@ def test_engine_settings_the_summary_table_was_not_measured_with_are_named_at_st
     at 5, less accurately, which nothing said. The start-up log names the key, both values
     and the table, once (not again from summarize); the model's own settings say nothing."""
     caplog.set_level(logging.INFO, logger="emdflowd")
-    emdflow.summary._warn_if_uncalibrated.cache_clear()
+    emdflow.summary.warn_if_uncalibrated.cache_clear()
 
     def factory():
         return make_source("synthetic:u=2,v=1", width=96, height=72, fps=100)

@@ -1360,7 +1360,7 @@ def test_summarize_warns_once_when_its_table_was_measured_with_other_settings():
 
     from emdflow.summary import CalibrationWarning
 
-    emdflow.summary._warn_if_uncalibrated.cache_clear()  # (once per parameter set and process)
+    emdflow.summary.warn_if_uncalibrated.cache_clear()  # (once per parameter set and process)
     params = EngineParams(threshold=7.25, diagonal_evidence=False)
     hist = model_histogram((3.0, 1.0), seed=5)
     with pytest.warns(CalibrationWarning, match=r"threshold 7\.25 \(table: 5\.0\)"):
@@ -1404,7 +1404,7 @@ def test_evaluation_flies_other_engine_settings(monkeypatch, tmp_path, capsys):
     from emdflow.tools import calibrate_summary as cs
 
     monkeypatch.setitem(cs.MODEL_EVALUATION_SPEEDS, "paper", (3,))
-    emdflow.summary._warn_if_uncalibrated.cache_clear()  # (once per parameter set and process)
+    emdflow.summary.warn_if_uncalibrated.cache_clear()  # (once per parameter set and process)
     out = tmp_path / "flights.npz"
     with pytest.warns(CalibrationWarning, match=r"threshold 8\.0 \(table: 5\.0\)"):
         cs.main(["evaluate", "--size", "64x48", "--frames", "1", "--textures", "moon",

@@ -141,6 +141,10 @@ class FlowSample:
         Image flow since the previous frame, px/frame, x right, y down.
     quality : int
         0 (no usable flow) … 255 (best).
+    doubtful : bool
+        The summary's quality is below the link's floor (``[link] min_quality``): the report
+        leaves this frame's flow out and reads its span at its other frames' rate (quality 0
+        when those are fewer than half; :meth:`FlowIntegrator.add_frame`).
     extras : tuple of (str, float)
         Named extra values (expansion rate, time to contact, balance ...) that a link may
         send as well when ``LinkConfig.extra_values`` is on (MAVLink: NAMED_VALUE_FLOAT,
@@ -153,6 +157,7 @@ class FlowSample:
     flow_y: float
     quality: int
     extras: tuple = ()
+    doubtful: bool = False
 
 
 @dataclass(kw_only=True)
@@ -352,7 +357,7 @@ class FlowLink:
     #: (ArduPilot: 0.5 s).
     autopilot_timeout_s = 0.5
     #: Shortest capture span a good report may cover, µs (0: any; the MAVLink link sets it
-    #: before this class's __init__ for PX4's message sets).
+    #: before this class's __init__: PX4's message sets, ArduPilot's at its default rate).
     min_report_span_us = 0.0
     #: Whether reports are held for a send time (:meth:`_send_at`): the caller then calls
     #: :meth:`send_due` when :meth:`wake_in_s` says (the daemon: from its report writer thread).
@@ -611,7 +616,7 @@ class FlowLink:
             self._emit_pending(capture_host_us=self._last_capture_host_us, now=now, quality0=True,
                                paced_on=(int(sample.capture_host_us), int(sample.timestamp_us)))
         accepted = integ.add_frame(timestamp_us=sample.timestamp_us, flow_x_px=sample.flow_x,
-                                   flow_y_px=sample.flow_y, quality=sample.quality)
+                                   flow_y_px=sample.flow_y, quality=sample.quality, doubtful=sample.doubtful)
         if late or not accepted:
             self.stats["integration_restarts"] = integ.restart_count
         if late:

@@ -67,14 +67,18 @@ PX4_MIN_REPORT_SPAN_US = math.ceil(1e6 / PX4_SENS_FLOW_RATE_HZ)
 
 #: ArduPilot's EKF3 stores an optical flow sample only 50 ms or more after the previous one
 #: it took (``NavEKF3_core::writeOptFlowMeas``, ``sensorIntervalMin_ms``; a quality-0 one
-#: counts), checked when its 200 Hz flow task hands the message over: of 100 reports a
-#: second it fuses one in five, each spanning 10 ms of frames. At most 17 a second, every
-#: report is at least 57 ms of frames (a quarter frame's tolerance under 1/17 s) and 50 ms
-#: after the one before even when the task's 5 ms step and some jitter fall against it: the
-#: EKF fuses as many reports as before, each averaging five or six frames instead of one,
-#: and dates them closer to their middle (it takes each to be 50 ms + EK3_FLOW_DELAY old,
-#: the middle of a PX4Flow's 100 ms). The default cap of ``autopilot = "ardupilot"``.
+#: counts), checked when its flow task (200 Hz on Copter and Rover) hands the message over:
+#: of 100 reports a second it fuses one in five or six, each spanning 10 ms of frames. By
+#: default (no ``message_rate_hz``) ``autopilot = "ardupilot"`` sends at most 17 a second,
+#: each at least :data:`ARDUPILOT_MIN_REPORT_SPAN_US` of frames (whatever the frame rate:
+#: the quarter frame's alignment tolerance alone let one frame of a 20 fps camera, 50 ms,
+#: be a report), so that it comes 50 ms after the one before even when the task's 5 ms
+#: step and some jitter fall against it: the EKF fuses each, averaging the frames of its
+#: span (a little fewer a second than the ~19 it picked out of 100), and dates it closer to
+#: its middle (it takes each to be 50 ms + EK3_FLOW_DELAY + half its time step old, the
+#: middle of a PX4Flow's 100 ms).
 ARDUPILOT_EKF3_RATE_HZ = 17.0
+ARDUPILOT_MIN_REPORT_SPAN_US = 57_000
 
 HEARTBEAT_TYPE = mavlink2.MAV_TYPE_ONBOARD_CONTROLLER  # 18: no MAV_TYPE for a flow sensor
 
@@ -132,8 +136,13 @@ class MavlinkLink(FlowLink):
 
     def __init__(self, config: LinkConfig):
         self.message_set = message_set_for(config)
-        # PX4 merges shorter OPTICAL_FLOW_RAD reports (see PX4_SENS_FLOW_RATE_HZ)
-        self.min_report_span_us = PX4_MIN_REPORT_SPAN_US if "OPTICAL_FLOW_RAD" in self.message_set else 0.0
+        # PX4 merges shorter OPTICAL_FLOW_RAD reports (see PX4_SENS_FLOW_RATE_HZ); ArduPilot's
+        # EKF3 drops a report less than 50 ms after the last (ARDUPILOT_EKF3_RATE_HZ), unless
+        # a message rate is set: then each report spans what that rate gives
+        if "OPTICAL_FLOW_RAD" in self.message_set:
+            self.min_report_span_us = PX4_MIN_REPORT_SPAN_US
+        else:
+            self.min_report_span_us = ARDUPILOT_MIN_REPORT_SPAN_US if config.message_rate_hz is None else 0.0
         self.encoder = new_encoder(sysid=config.sysid, compid=config.compid)
         self._rx = self._new_parser()
         self._dpix_carry = [0.0, 0.0]
@@ -167,7 +176,7 @@ class MavlinkLink(FlowLink):
         return super()._reserved_bytes_per_s() + extras
 
     def _default_rate_cap(self) -> float:
-        return PX4_SENS_FLOW_RATE_HZ if self.min_report_span_us else ARDUPILOT_EKF3_RATE_HZ
+        return PX4_SENS_FLOW_RATE_HZ if "OPTICAL_FLOW_RAD" in self.message_set else ARDUPILOT_EKF3_RATE_HZ
 
     def _choose_extras_rate(self) -> float:
         """Extra-value rounds per second: :data:`EXTRAS_RATE_HZ` where the budget has room
@@ -206,7 +215,7 @@ class MavlinkLink(FlowLink):
     def _choose_rate(self) -> float:
         self.extras_rate_hz = self._choose_extras_rate()
         rate = super()._choose_rate()
-        if self.min_report_span_us and rate > PX4_SENS_FLOW_RATE_HZ:
+        if "OPTICAL_FLOW_RAD" in self.message_set and rate > PX4_SENS_FLOW_RATE_HZ:
             log.warning("%s on %s: message_rate_hz %.0f: OPTICAL_FLOW_RAD reports span at least %.1f ms "
                         "(PX4 merges shorter ones up to 1/SENS_FLOW_RATE, default %.0f Hz, and averages "
                         "their qualities), so at most %.0f go out per second", self.protocol,
