@@ -56,7 +56,8 @@ the two capture timestamps. Rules:
 * A *doubtful* frame (its summary rated below the link's quality floor: a flow that may be
   far off or of the wrong sign) is left out of the sums, not counted as blind: the interval's
   flow is its other frames' mean rate (their flow over their time) over the whole interval,
-  and its quality their mean quality — or 0 when they are fewer than half of its frames (a one-frame interval of a
+  and its quality their mean quality times the share of the span they cover — or 0 when
+  they are fewer than half of its frames (a one-frame interval of a
   doubtful frame is quality 0, as when the floor zeroed each frame). Otherwise one doubtful
   frame in six cost ArduPilot the 60 ms report around it.
 """
@@ -415,6 +416,8 @@ class FlowIntegrator:
             # exactly 1 without doubtful frames)
             quality = round(self._quality_sum / trusted)
             scale = (end - start) / self._trusted_us if self._doubtful else 1.0
+            # (a partly filled-in report is worth less: PX4 scales its flow noise by quality)
+            quality = max(1, round(quality / scale))
         sum_u, sum_v = self._sum_u * scale, self._sum_v * scale
         interval = FlowInterval(start_us=start, end_us=end,
                                 integrated_x=sum_u / f, integrated_y=sum_v / f,

@@ -152,11 +152,12 @@ def test_doubtful_frames_are_left_out_and_the_rest_read_over_the_span():
                         doubtful=doubtful)
     iv = integ.take()
     assert iv.integration_time_us == 60_000 and iv.frame_count == 6
-    assert iv.quality == 215                                   # (200 + 220 + 240 + 200) / 4
+    # (200 + 220 + 240 + 200) / 4 = 215, times the 40 of 60 ms those four frames cover
+    assert iv.quality == 143
     assert iv.integrated_y == pytest.approx(6 * 1.0 / 400.0)   # 1 px/frame over all six frames
     assert iv.sum_v_px == pytest.approx(6.0) and iv.integrated_x == 0.0
-    # half of them trusted is enough; fewer is quality 0
-    for flags, quality in (([True, False], 200), ([True, True, False], 0), ([True], 0)):
+    # half of them trusted is enough (the quality then half the trusted one's); fewer is 0
+    for flags, quality in (([True, False], 100), ([True, True, False], 0), ([True], 0)):
         for j, doubtful in enumerate(flags):
             integ.add_frame(timestamp_us=integ.last_timestamp_us + 10_000, flow_x_px=0.0, flow_y_px=1.0,
                             quality=50 if doubtful else 200, doubtful=doubtful)

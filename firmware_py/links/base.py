@@ -644,8 +644,11 @@ class FlowLink:
             # ... and no later than the frame after which the next one would take the report
             # past FRESH_REPORT_US (at the floor, frames 90-140 ms apart would otherwise wait
             # for the frame after the period: 200-227 ms between reports) or max_interval_us.
-            due = max(min(self.period_us - tolerance, FRESH_REPORT_US - nominal,
-                          integ.max_interval_us - nominal), self.min_report_span_us)
+            # The minimum span yields to both backstops too: held, a short interval of a slow
+            # camera would go past max_interval_us with the next frame (out as quality 0), or
+            # reports would drift past FRESH_REPORT_US apart.
+            backstop = min(FRESH_REPORT_US - nominal, integ.max_interval_us - nominal)
+            due = max(min(self.period_us - tolerance, backstop), min(self.min_report_span_us, backstop))
             if integ.elapsed_us > 0 and integ.elapsed_us >= due:
                 self._emit_pending(capture_host_us=int(sample.capture_host_us), now=now)
         self._last_capture_host_us = int(sample.capture_host_us)

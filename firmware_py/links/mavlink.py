@@ -72,7 +72,8 @@ PX4_MIN_REPORT_SPAN_US = math.ceil(1e6 / PX4_SENS_FLOW_RATE_HZ)
 #: default (no ``message_rate_hz``) ``autopilot = "ardupilot"`` sends at most 17 a second,
 #: each at least :data:`ARDUPILOT_MIN_REPORT_SPAN_US` of frames (whatever the frame rate:
 #: the quarter frame's alignment tolerance alone let one frame of a 20 fps camera, 50 ms,
-#: be a report), so that it comes 50 ms after the one before even when the task's 5 ms
+#: be a report; a set rate of 17 or less gets that minimum too, and 97 % of its period),
+#: so that it comes 50 ms after the one before even when the task's 5 ms
 #: step and some jitter fall against it: the EKF fuses each, averaging the frames of its
 #: span (a little fewer a second than the ~19 it picked out of 100), and dates it closer to
 #: its middle (it takes each to be 50 ms + EK3_FLOW_DELAY + half its time step old, the
@@ -137,12 +138,18 @@ class MavlinkLink(FlowLink):
     def __init__(self, config: LinkConfig):
         self.message_set = message_set_for(config)
         # PX4 merges shorter OPTICAL_FLOW_RAD reports (see PX4_SENS_FLOW_RATE_HZ); ArduPilot's
-        # EKF3 drops a report less than 50 ms after the last (ARDUPILOT_EKF3_RATE_HZ), unless
-        # a message rate is set: then each report spans what that rate gives
+        # EKF3 drops a report less than 50 ms after the last (ARDUPILOT_EKF3_RATE_HZ): at the
+        # default rate, or a set one as low, each report spans at least 57 ms and nearly its
+        # period (the quarter-frame alignment tolerance let one 55.6 ms frame of an 18 fps
+        # camera be a 15 Hz report, 40 ms after the last on Plane's 20 ms task step); a faster
+        # set rate (older firmware's FLOW_FXSCALER range) spans what it gives
+        rate = config.message_rate_hz
         if "OPTICAL_FLOW_RAD" in self.message_set:
             self.min_report_span_us = PX4_MIN_REPORT_SPAN_US
+        elif rate is None or rate <= ARDUPILOT_EKF3_RATE_HZ:
+            self.min_report_span_us = max(float(ARDUPILOT_MIN_REPORT_SPAN_US), 0.97e6 / rate if rate else 0.0)
         else:
-            self.min_report_span_us = ARDUPILOT_MIN_REPORT_SPAN_US if config.message_rate_hz is None else 0.0
+            self.min_report_span_us = 0.0
         self.encoder = new_encoder(sysid=config.sysid, compid=config.compid)
         self._rx = self._new_parser()
         self._dpix_carry = [0.0, 0.0]
