@@ -417,7 +417,9 @@ def test_the_pacing_check_prints_the_intervals_inav_divides_by(capsys):
         match = re.search(r"intervals between written reports: p5 ([\d.]+) p50 ([\d.]+) p95 ([\d.]+) ms; "
                           r"(\d+)% within 0.5 ms of 20 ms", out)
         assert match, out
-        assert float(match[2]) == pytest.approx(20.0, abs=0.5)  # (50 Hz reports, however they jitter)
+        # (50 Hz reports, however they jitter; unpaced, their intervals spread 15-25 ms and the
+        # median of ~80 of them strays ~0.4 ms: 19.43 ms failed a 0.5 ms bound in one CI run)
+        assert float(match[2]) == pytest.approx(20.0, abs=0.5 if delay == "auto" else 1.5)
         # (held, paced, only with a delay)
         assert ("held reports written after their due time: p50" in out) == (delay == "auto"), out
     for bad in (["--engine-ms", "fast"], ["--delay-ms", "60"], ["--delay-ms", "soon"], ["--frames", "10"]):
