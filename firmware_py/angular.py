@@ -371,8 +371,9 @@ class FlowIntegrator:
         ts = int(timestamp_us)
         q = max(0, min(255, int(quality))) if math.isfinite(quality) else 0
         # NaN, or a flow of a focal length or more (45° or more of view per frame): no
-        # camera measures that, and sums of such values overflow the wire's fields
-        if not math.hypot(flow_x_px, flow_y_px) < self.focal_length_px:
+        # camera measures that, and sums of such values overflow the wire's fields (a
+        # doubtful frame's flow is left out anyway: it stays doubtful, not blind)
+        if not math.hypot(flow_x_px, flow_y_px) < self.focal_length_px and not doubtful:
             q = 0
         if self._last_us is None:
             self.restart(ts)

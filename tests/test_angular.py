@@ -162,6 +162,13 @@ def test_doubtful_frames_are_left_out_and_the_rest_read_over_the_span():
             integ.add_frame(timestamp_us=integ.last_timestamp_us + 10_000, flow_x_px=0.0, flow_y_px=1.0,
                             quality=50 if doubtful else 200, doubtful=doubtful)
         assert integ.take().quality == quality, flags
+    # a doubtful frame's flow is never summed: not even a NaN or absurd one blanks the report
+    for bad in (math.nan, 1e300):
+        for flow, doubtful in ((1.0, False), (bad, True), (1.0, False), (1.0, False)):
+            integ.add_frame(timestamp_us=integ.last_timestamp_us + 10_000, flow_x_px=0.0, flow_y_px=flow,
+                            quality=50 if doubtful else 200, doubtful=doubtful)
+        iv = integ.take()
+        assert iv.quality == 150 and iv.integrated_y == pytest.approx(4 / 400.0), bad
     # a blind frame still makes the interval quality 0
     integ.add_frame(timestamp_us=integ.last_timestamp_us + 10_000, flow_x_px=0.0, flow_y_px=1.0, quality=200)
     integ.add_frame(timestamp_us=integ.last_timestamp_us + 10_000, flow_x_px=0.0, flow_y_px=1.0, quality=50,
