@@ -245,7 +245,7 @@ from pathlib import Path
 import numpy as np
 
 from .field import FlowField
-from .params import GRADIENT_CLASS_STEPS, HISTOGRAM_BINS, ORIENTATION_BINS, EngineParams, _is_real, _is_whole
+from .params import GRADIENT_CLASS_STEPS, HISTOGRAM_BINS, MODELS, ORIENTATION_BINS, EngineParams, _is_real, _is_whole
 from .reference import STAT_CONTRAST, STAT_FIRST_CHANGED
 
 __all__ = ["FlowSummary", "summarize", "SummaryOptions", "calibration_for", "calibration_mismatch", "CalibrationWarning",
@@ -812,12 +812,18 @@ def calibration_for(params: EngineParams, ground: str = "edges"):
     line-ground table instead (None when it has none; see :attr:`SummaryOptions.ground`)."""
     if ground not in GROUNDS[1:]:
         raise ValueError(f"calibration_for(ground={ground!r}): expected 'edges' or 'lines'")
+    table = _calibration_table(params, ground)
+    return None if table is None else table["_path"]
+
+
+def _calibration_table(params: EngineParams, ground: str = "edges"):
+    """The table :func:`calibration_for` names, as loaded (a dict of arrays), or None."""
     best = None
     for table in _load_calibrations():
         rank = _table_matches(table, params, ground)
         if rank is not None and (best is None or rank < best[0]):
             best = (rank, table)
-    return None if best is None else best[1]["_path"]
+    return None if best is None else best[1]
 
 
 class CalibrationWarning(UserWarning):
@@ -833,8 +839,6 @@ def table_settings(table: dict) -> dict:
     flights, which fly the models' defaults."""
     if "engine_settings" in table:
         return dict(json.loads(str(table["engine_settings"])))
-    from .params import MODELS
-
     model = str(table["model"]) if "model" in table else "paper"
     options = dict(MODELS.get(model, {}))
     if "threshold_mode" in table:
@@ -853,30 +857,34 @@ def calibration_mismatch(params: EngineParams, ground: str = "edges") -> dict:
     reads 6.3 % / 1.9° median error with the threshold of its table (5), 9.9 % / 2.2° at
     threshold 10 and 10.7 % / 2.8° without the prefilter (README, "Calibration settings").
     A different threshold mode is reported alone (its settings do not compare)."""
-    path = calibration_for(params, ground)
-    if path is None:
+    table = _calibration_table(params, ground)
+    if table is None:
         return {}
-    table = next(t for t in _load_calibrations() if t["_path"] == path)
     theirs, ours = table_settings(table), params.calibration_settings()
     if theirs.get("threshold_mode") != ours["threshold_mode"]:
         return {"threshold_mode": (theirs.get("threshold_mode"), ours["threshold_mode"])}
     return {name: (theirs.get(name), value) for name, value in ours.items() if theirs.get(name) != value}
 
 
+def mismatch_text(mismatch: dict, joiner: str = " ") -> str:
+    """``name<joiner>value (table: value), …`` of a :func:`calibration_mismatch` result."""
+    return ", ".join(f"{name}{joiner}{given!r} (table: {table!r})" for name, (table, given) in mismatch.items())
+
+
 @functools.lru_cache(maxsize=64)
-def warn_if_uncalibrated(params: EngineParams) -> None:
+def warn_if_uncalibrated(params: EngineParams) -> dict:
     """Warn once per parameter set and process (the cache) that its edge table was measured
-    with other settings (:func:`calibration_mismatch`); :func:`summarize` calls it. A caller
-    that reports the mismatch its own way (the daemon, in its log) calls it first under a
-    ``warnings.catch_warnings()`` that ignores :class:`CalibrationWarning`: the set then
-    counts as told, and the summaries stay quiet."""
+    with other settings, and return them (:func:`calibration_mismatch`); :func:`summarize`
+    calls it. A caller that reports the mismatch its own way (the daemon, in its log) calls
+    it first under a ``warnings.catch_warnings()`` that ignores :class:`CalibrationWarning`:
+    the set then counts as told, and the summaries stay quiet."""
     mismatch = calibration_mismatch(params)
     if mismatch:
-        differ = ", ".join(f"{name} {given!r} (table: {table!r})" for name, (table, given) in mismatch.items())
         warnings.warn(f"summarize(): the calibration table {calibration_for(params).name} was measured with "
-                      f"other engine settings than the field's: {differ}; the summary's error with these "
-                      "settings is larger and unmeasured (README, \"Calibration settings\")",
+                      f"other engine settings than the field's: {mismatch_text(mismatch)}; the summary's "
+                      "error with these settings is larger and unmeasured (README, \"Calibration settings\")",
                       CalibrationWarning, stacklevel=3)
+    return mismatch
 
 
 def _model_for(params: EngineParams, opts: SummaryOptions, ground: str = "edges"):
@@ -889,10 +897,9 @@ def _model_for(params: EngineParams, opts: SummaryOptions, ground: str = "edges"
     if key in _MODEL_CACHE:
         _MODEL_CACHE.move_to_end(key)
         return _MODEL_CACHE[key]
-    path = calibration_for(params, ground)
+    table = _calibration_table(params, ground)
     model = None
-    if path is not None:
-        table = next(t for t in _load_calibrations() if t["_path"] == path)
+    if table is not None:
         edges = np.asarray(table.get("contrast_edges", ()), np.float64)
         prob = np.asarray(table["prob"])
         # ([contrast class,] [gradient class,] ψ, β, u, category); a table with gradient-

@@ -550,9 +550,8 @@ class _ReportWriter(threading.Thread):
                 # nothing held: sleep until one is (polling while the port is still taking
                 # something queued, which may hold one back)
                 held.wait(_POLL_S if self.link.queued_messages else None)
-            elif wait_s > 0:
-                self._stopping.wait(wait_s)
-            else:
+            elif wait_s <= 0 or not self._stopping.wait(wait_s):
+                # (due now, or once the wait is over: pump() sends nothing not yet due)
                 self.link.send_due(host_us())
 
 
@@ -787,18 +786,16 @@ class Daemon:
         summary still runs, less accurately and with a quality calibrated for the table's
         settings, so this is said once here, in the daemon's log, and not again by
         :func:`emdflow.summarize` on the first frame."""
-        mismatch = emdflow.summary.calibration_mismatch(params)
-        if mismatch:
-            differ = ", ".join(f"{name} = {given!r} (table: {table!r})" for name, (table, given) in mismatch.items())
-            log.warning("[engine] %s: the %s model's summary table %s was measured with other settings; "
-                        "the summary's error is larger and unmeasured with these (README, \"Calibration "
-                        "settings\")", differ, self.config.engine.model,
-                        emdflow.summary.calibration_for(params).name)
         # (told here: the parameter set counts as warned, so summarize() stays quiet, without
         # a filter on the whole process's warnings)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", emdflow.summary.CalibrationWarning)
-            emdflow.summary.warn_if_uncalibrated(params)
+            mismatch = emdflow.summary.warn_if_uncalibrated(params)
+        if mismatch:
+            log.warning("[engine] %s: the %s model's summary table %s was measured with other settings; "
+                        "the summary's error is larger and unmeasured with these (README, \"Calibration "
+                        "settings\")", emdflow.summary.mismatch_text(mismatch, " = "), self.config.engine.model,
+                        emdflow.summary.calibration_for(params).name)
 
     def _warn_of_sparse_evidence(self) -> None:
         """An ``[engine] evidence_row_step`` that samples too few rows of the processed frame

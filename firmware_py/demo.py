@@ -253,8 +253,8 @@ def _truth_rate(daemon, truth_source, reader) -> tuple[float, float]:
     before = reader.previous_flow
     oldest = round(before.time_usec * daemon.fps / 1e6) + 1 if before is not None else newest
     frames = range(max(1, min(oldest, newest)), max(1, newest) + 1)
-    u = sum(truth_source.truth(i)[0] for i in frames) / len(frames)
-    v = sum(truth_source.truth(i)[1] for i in frames) / len(frames)
+    us, vs = zip(*(truth_source.truth(i) for i in frames))
+    u, v = sum(us) / len(frames), sum(vs) / len(frames)
     scale = daemon.fps / daemon.focal_length_px
     return u * scale, v * scale
 

@@ -230,13 +230,12 @@ def stored_engine_settings(paths, model: str) -> dict:
     ``paths`` were flown with; a file that does not record them (made before they were
     recorded) flew the defaults of ``model`` with its threshold mode. The files must
     agree: a table is measured with one set."""
+    from emdflow.summary import table_settings
+
     found = {}
     for path in paths:
-        with np.load(path) as z:
-            if "engine_settings" in z.files:
-                settings = json.loads(str(z["engine_settings"]))
-            else:
-                settings = model_params(model, threshold_mode=stored_threshold_mode([path], model)).calibration_settings()
+        with np.load(path) as z:  # (recorded, or the model's; fit checks each file's model is ``model``)
+            settings = table_settings(z)
         found.setdefault(json.dumps(settings, sort_keys=True), []).append(str(path))
     if len(found) > 1:
         raise SystemExit("the calibration files were flown with different engine settings: "
@@ -1069,18 +1068,16 @@ def _print_flight_bias(sums, flows, per_flight: int, out=print):
         f"{np.median(speed[ok].std(axis=1)) * 100:.1f} %")
 
 
-def summary_option_values(items) -> dict:
-    """``--summary-opt KEY=VALUE`` items as SummaryOptions keywords, each value converted to
-    its field's type (ValueError naming what is wrong)."""
-    from emdflow.summary import SummaryOptions
-
-    fields = {f.name: f for f in dataclasses.fields(SummaryOptions)}
+def _keyword_values(items, defaults: dict) -> dict:
+    """``KEY=VALUE`` items as keywords of ``defaults`` (name: default value), each value
+    converted to its default's type (ValueError naming what is wrong): true/false or 1/0,
+    an int, a string, else a number (or "none")."""
     out = {}
     for item in items:
         key, sep, text = item.partition("=")
-        if not sep or key not in fields:
-            raise ValueError(f"{item!r}: expected KEY=VALUE with KEY one of {', '.join(fields)}")
-        default = fields[key].default
+        if not sep or key not in defaults:
+            raise ValueError(f"{item!r}: expected KEY=VALUE with KEY one of {', '.join(defaults)}")
+        default = defaults[key]
         try:
             if isinstance(default, bool):
                 if text.lower() not in ("true", "false", "1", "0"):
@@ -1098,34 +1095,26 @@ def summary_option_values(items) -> dict:
     return out
 
 
+def summary_option_values(items) -> dict:
+    """``--summary-opt KEY=VALUE`` items as SummaryOptions keywords, each value converted to
+    its field's type (ValueError naming what is wrong)."""
+    from emdflow.summary import SummaryOptions
+
+    return _keyword_values(items, {f.name: f.default for f in dataclasses.fields(SummaryOptions)})
+
+
 #: ``--engine-opt`` keys of ``evaluate``: the settings a table depends on besides the
 #: channels (``EngineParams.calibration_settings``; the threshold mode has its own option)
-ENGINE_OPTIONS = {"threshold": float, "prefilter_size": int, "sharp_templates": bool,
-                  "brightness_compensation": bool, "adaptive_gain": float, "threshold_min": float,
-                  "threshold_max": float, "threshold_tile": int}
+ENGINE_OPTIONS = ("threshold", "prefilter_size", "sharp_templates", "brightness_compensation", "adaptive_gain",
+                  "threshold_min", "threshold_max", "threshold_tile")
 
 
 def engine_option_values(items) -> dict:
     """``--engine-opt KEY=VALUE`` items as ``FlowEstimator`` keywords of
     :data:`ENGINE_OPTIONS`, each value converted to its type (ValueError naming what is
     wrong; the value's range is EngineParams' to check)."""
-    out = {}
-    for item in items:
-        key, sep, text = item.partition("=")
-        if not sep or key not in ENGINE_OPTIONS:
-            raise ValueError(f"{item!r}: expected KEY=VALUE with KEY one of {', '.join(ENGINE_OPTIONS)}")
-        kind = ENGINE_OPTIONS[key]
-        try:
-            if kind is bool:
-                if text.lower() not in ("true", "false", "1", "0"):
-                    raise ValueError
-                value = text.lower() in ("true", "1")
-            else:
-                value = kind(text)
-        except ValueError:
-            raise ValueError(f"{item!r}: {text!r} is not a value for {key}") from None
-        out[key] = value
-    return out
+    defaults = {f.name: f.default for f in dataclasses.fields(EngineParams)}
+    return _keyword_values(items, {name: defaults[name] for name in ENGINE_OPTIONS})
 
 
 def evaluate(offset: float, random_set: bool = False, frames: int = 6, backend: str = "opencl",

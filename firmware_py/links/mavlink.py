@@ -137,6 +137,7 @@ class MavlinkLink(FlowLink):
 
     def __init__(self, config: LinkConfig):
         self.message_set = message_set_for(config)
+        self._for_px4 = "OPTICAL_FLOW_RAD" in self.message_set  # (PX4's span and rate rules)
         # PX4 merges shorter OPTICAL_FLOW_RAD reports (see PX4_SENS_FLOW_RATE_HZ); ArduPilot's
         # EKF3 drops a report less than 50 ms after the last (ARDUPILOT_EKF3_RATE_HZ): at the
         # default rate, or a set one as low, each report spans at least 57 ms and nearly its
@@ -144,7 +145,7 @@ class MavlinkLink(FlowLink):
         # camera be a 15 Hz report, 40 ms after the last on Plane's 20 ms task step); a faster
         # set rate (older firmware's FLOW_FXSCALER range) spans what it gives
         rate = config.message_rate_hz
-        if "OPTICAL_FLOW_RAD" in self.message_set:
+        if self._for_px4:
             self.min_report_span_us = PX4_MIN_REPORT_SPAN_US
         elif rate is None or rate <= ARDUPILOT_EKF3_RATE_HZ:
             self.min_report_span_us = max(float(ARDUPILOT_MIN_REPORT_SPAN_US), 0.97e6 / rate if rate else 0.0)
@@ -183,7 +184,7 @@ class MavlinkLink(FlowLink):
         return super()._reserved_bytes_per_s() + extras
 
     def _default_rate_cap(self) -> float:
-        return PX4_SENS_FLOW_RATE_HZ if "OPTICAL_FLOW_RAD" in self.message_set else ARDUPILOT_EKF3_RATE_HZ
+        return PX4_SENS_FLOW_RATE_HZ if self._for_px4 else ARDUPILOT_EKF3_RATE_HZ
 
     def _choose_extras_rate(self) -> float:
         """Extra-value rounds per second: :data:`EXTRAS_RATE_HZ` where the budget has room
@@ -222,7 +223,7 @@ class MavlinkLink(FlowLink):
     def _choose_rate(self) -> float:
         self.extras_rate_hz = self._choose_extras_rate()
         rate = super()._choose_rate()
-        if "OPTICAL_FLOW_RAD" in self.message_set and rate > PX4_SENS_FLOW_RATE_HZ:
+        if self._for_px4 and rate > PX4_SENS_FLOW_RATE_HZ:
             log.warning("%s on %s: message_rate_hz %.0f: OPTICAL_FLOW_RAD reports span at least %.1f ms "
                         "(PX4 merges shorter ones up to 1/SENS_FLOW_RATE, default %.0f Hz, and averages "
                         "their qualities), so at most %.0f go out per second", self.protocol,

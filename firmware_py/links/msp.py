@@ -107,8 +107,9 @@ class MspLink(FlowLink):
         return self.pacer.fixed_us != 0
 
     def _send_at(self, capture_host_us: int | None, capture_us: int, now: int) -> int | None:
+        was_real_time = self.pacer.real_time
         due = self.pacer.send_at(capture_host_us, capture_us, now)
-        if not self.pacer.real_time:
+        if was_real_time and not self.pacer.real_time:
             self.transport.release_held()  # (no capture clock to keep to: what waits goes now)
         self.stats["report_delay_ms"] = self.pacer.delay_us / 1000.0 if self.pacer.real_time else 0.0
         self.stats["late_reports"] = self.pacer.late
